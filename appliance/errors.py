@@ -12,6 +12,7 @@ from drivers.errors import (  # noqa: F401  (re-exported)
     DeviceNotFoundError,
     DevicePermissionError,
     DeviceTimeoutError,
+    InputDataError,
     LinkLostError,
     ProtocolError,
 )
@@ -27,7 +28,3 @@ class CalibrationError(ApplianceError, ValueError):
 
 class TrackingError(ApplianceError):
     """The robot could not be recognised (used where a caller needs an exception, not a record)."""
-
-
-class InputDataError(ApplianceError, ValueError):
-    """Input data such as a frame folder or an image is missing, unreadable or inconsistent."""

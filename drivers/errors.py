@@ -40,3 +40,7 @@ class DeviceTimeoutError(DeviceError, TimeoutError):
 
 class ProtocolError(DeviceError):
     """Bytes on a link that break the protocol: framing, CRC, or an unexpected reply."""
+
+
+class InputDataError(ApplianceError, ValueError):
+    """Recorded input such as a frame folder or an image file is missing, unreadable or inconsistent."""
