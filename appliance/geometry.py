@@ -281,8 +281,14 @@ class CalibrationModel(StrictModel):
 
 
 def _nearest_rotation(R: Any) -> np.ndarray:
-    """Project a validated near-rotation onto SO(3) so that later algebra sees an exact one."""
-    u, _, vt = np.linalg.svd(np.asarray(R, dtype=np.float64))
+    """Project a validated near-rotation onto SO(3) so that later algebra sees an exact one.
+
+    One already orthonormal to rounding is kept bit for bit, so that save/load round trips are exact.
+    """
+    matrix = np.asarray(R, dtype=np.float64)
+    if np.max(np.abs(matrix.T @ matrix - np.eye(3))) < 1e-12:
+        return matrix
+    u, _, vt = np.linalg.svd(matrix)
     return u @ vt
 
 
