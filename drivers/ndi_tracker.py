@@ -1,0 +1,401 @@
+"""Driver for NDI optical trackers (Polaris over serial, Vega over TCP) through the Combined API.
+
+The driver takes a ready pyserial port (``drivers.transport.open_serial``: a device path, a pty, or
+``host:port``) and runs the session a tracker expects: INIT (with a serial break and RESET when the
+tracker does not answer, e.g. because it is still at the speed a previous session chose), COMM to a
+faster line speed and the host switch after OKAY (serial only), passive tools from tool definition
+(.rom) files (PHRQ, PVWR in 64-byte chunks, PINIT, PENA), TSTART, TX or BX per frame, TSTOP.
+
+Each tool in a frame becomes a :class:`ToolSample`: 4x4 transform (mm) and quaternion (w, x, y, z),
+RMS fit error, the tracker's 60 Hz frame number and the host time of the reply; a tool the tracker does
+not see is ``missing`` with no pose (never zeros). A background reader (:meth:`NDITracker.start_streaming`)
+polls at the tracker's rate and hands the newest frame to whoever asks (:meth:`NDITracker.latest`).
+
+Errors: an ``ERRORxx`` reply raises :class:`NdiCommandError` naming the command and the code's meaning;
+no reply in time raises DeviceTimeoutError; a bad CRC or malformed reply ProtocolError; a dropped link
+LinkLostError.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import serial
+
+from drivers.errors import DeviceError, DeviceTimeoutError, InputDataError, LinkLostError, ProtocolError
+from firmware_protocol.errors import FrameError
+from firmware_protocol.ndi import (
+    CR,
+    OKAY,
+    ROM_MAX_BYTES,
+    CommSettings,
+    NdiErrorCode,
+    decode_reply,
+    encode_command,
+    error_meaning,
+    parse_error,
+    parse_phrq,
+    parse_phsr,
+    pvwr_params,
+    rom_chunks,
+)
+from firmware_protocol.ndi_replies import (
+    BX_HEADER_BYTES,
+    OPTION_TRANSFORMS,
+    ToolState,
+    TrackingReply,
+    bx_total_length,
+    decode_bx,
+    decode_tx_text,
+    reply_is_binary,
+)
+
+log = logging.getLogger(__name__)
+
+FRAME_RATE_HZ = 60.0
+POWER_ON_BAUD = 9600
+#: Any tool type, wireless/passive (``1``), any port: what a passive tool's PHRQ asks for.
+PHRQ_PASSIVE = "*********1****"
+
+
+class NdiCommandError(DeviceError):
+    """The tracker answered ``ERRORxx`` to a command; ``code`` and ``meaning`` say why."""
+
+    def __init__(self, command: str, code: int, where: str) -> None:
+        self.command, self.code, self.meaning = command, code, error_meaning(code)
+        super().__init__(f"tracker at {where} answered ERROR{code:02X} to {command}: {self.meaning}")
+
+
+@dataclass(frozen=True)
+class ToolSample:
+    """One tool in one tracker frame. Pose fields are None when the tool is missing or disabled."""
+
+    handle: int
+    rom: str
+    frame: int
+    t: float                                   # host clock when the reply arrived, s
+    missing: bool
+    transform: np.ndarray | None = None        # 4x4, tool to tracker, mm
+    quaternion: tuple[float, float, float, float] | None = None   # w, x, y, z
+    rms_mm: float | None = None
+    port_status: int = 0
+    disabled: bool = False
+
+    @property
+    def position_mm(self) -> tuple[float, float, float] | None:
+        if self.transform is None:
+            return None
+        return (float(self.transform[0, 3]), float(self.transform[1, 3]), float(self.transform[2, 3]))
+
+
+def quaternion_to_matrix(q: tuple[float, float, float, float]) -> np.ndarray:
+    """Unit quaternion (w, x, y, z) -> 3x3 rotation matrix (normalised first: TX carries 4 decimals)."""
+    w, x, y, z = np.asarray(q, float) / np.linalg.norm(q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+class NDITracker:
+    """An NDI tracker on a ready port. Use as a context manager; ``close()`` stops tracking and closes."""
+
+    def __init__(self, port: serial.SerialBase, *, network: bool | None = None, reply_timeout_s: float = 2.0,
+                 clock: Callable[[], float] = time.monotonic, own_port: bool = True) -> None:
+        self.port = port
+        self.where = str(getattr(port, "portstr", None) or getattr(port, "port", None) or "?")
+        self.network = network if network is not None else self.where.startswith("socket://")
+        self.reply_timeout_s = reply_timeout_s
+        self.clock = clock
+        self.own_port = own_port
+        self.tools: dict[int, str] = {}         # handle -> ROM name
+        self.tracking = False
+        self._io = threading.RLock()             # one command/reply exchange at a time
+        self._latest: list[ToolSample] | None = None
+        self._latest_changed = threading.Condition()
+        self._reader: threading.Thread | None = None
+        self._reader_stop = threading.Event()
+        self._reader_error: BaseException | None = None
+        self._closed = False
+
+    # -- lifecycle ------------------------------------------------------------------------------------------
+    def __enter__(self) -> NDITracker:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def connect(self, baudrate: int = 115200, *, probe_timeout_s: float = 0.5, reset_timeout_s: float = 10.0) -> None:
+        """INIT the tracker (break and RESET it if it does not answer), then COMM to ``baudrate`` on serial."""
+        if not self.network:
+            self.port.baudrate = POWER_ON_BAUD
+        try:
+            self._init(probe_timeout_s)
+        except (DeviceTimeoutError, ProtocolError) as first:
+            if self.network or not hasattr(self.port, "send_break"):
+                raise
+            log.info("%s: no answer to INIT (%s); sending a serial break", self.where, first)
+            with self._io:
+                self._flush_input()
+                self._io_call(self.port.send_break, 0.25)
+                reply = self._read_text(time.monotonic() + reset_timeout_s, "serial break")
+            if reply != "RESET":
+                raise ProtocolError(f"tracker at {self.where} answered {reply!r} to a serial break instead of RESET")
+            self._init(probe_timeout_s)
+        if not self.network and baudrate != POWER_ON_BAUD:
+            self.command("COMM", CommSettings(baudrate).encode_params())
+            time.sleep(0.1)    # the tracker switches 100 ms after OKAY has left it
+            self.port.baudrate = baudrate
+        self.free_unoccupied_handles()
+        log.info("%s: tracker initialised%s", self.where, "" if self.network else f" at {self.port.baudrate} baud")
+
+    def _init(self, timeout_s: float) -> None:
+        try:
+            self.command("INIT", timeout_s=timeout_s)
+        except NdiCommandError as err:
+            if err.code != NdiErrorCode.INVALID_MODE:
+                raise
+            # A previous session left the tracker tracking: stop it and initialise again.
+            self.command("TSTOP", timeout_s=timeout_s)
+            self.command("INIT", timeout_s=timeout_s)
+
+    def close(self) -> None:
+        """Stop the reader, stop tracking (best effort) and close the port; safe to call twice."""
+        if self._closed:
+            return
+        self.stop_streaming()
+        if self.tracking:
+            try:
+                self.stop()
+            except DeviceError as err:
+                log.warning("%s: TSTOP on close failed: %s", self.where, err)
+        self._closed = True
+        if self.own_port:
+            try:
+                self.port.close()
+            except (OSError, serial.SerialException) as err:
+                log.warning("%s: closing the port failed: %s", self.where, err)
+
+    # -- commands -------------------------------------------------------------------------------------------
+    def version(self) -> str:
+        """The tracker's ``VER:0`` text (product, serial number, freeze tag...)."""
+        return str(self.command("VER", "0"))
+
+    def free_unoccupied_handles(self) -> None:
+        for entry in parse_phsr_text(str(self.command("PHSR", "01"))):
+            self.command("PHF", f"{entry:02X}")
+
+    def load_tool(self, rom: str | Path | bytes, name: str | None = None) -> int:
+        """Upload a passive tool definition (a .rom path or its bytes), initialise and enable it; returns the handle."""
+        if isinstance(rom, (str, Path)):
+            path = Path(rom)
+            try:
+                data = path.read_bytes()
+            except OSError as err:
+                raise InputDataError(f"cannot read tool definition {path}: {err.strerror or err}") from err
+            name = name or path.name
+        else:
+            data = bytes(rom)
+        if not data or len(data) > ROM_MAX_BYTES:
+            raise InputDataError(f"tool definition {name or '(bytes)'} is {len(data)} bytes; NDI tools are 1-1024 bytes")
+        handle = parse_phrq(str(self.command("PHRQ", PHRQ_PASSIVE)))
+        try:
+            for address, chunk in rom_chunks(data):
+                self.command("PVWR", pvwr_params(handle, address, chunk))
+            self.command("PINIT", f"{handle:02X}")
+            self.command("PENA", f"{handle:02X}D")
+        except DeviceError:
+            try:
+                self.command("PHF", f"{handle:02X}")
+            except DeviceError as cleanup:
+                log.warning("%s: freeing handle %02X after a failed load failed too: %s", self.where, handle, cleanup)
+            raise
+        self.tools[handle] = name or f"tool-{handle:02x}"
+        log.info("%s: tool %s loaded on handle %02X", self.where, self.tools[handle], handle)
+        return handle
+
+    def start(self) -> None:
+        self.command("TSTART")
+        self.tracking = True
+
+    def stop(self) -> None:
+        self.stop_streaming()
+        self.command("TSTOP")
+        self.tracking = False
+
+    def read_frame(self, mode: str = "tx") -> list[ToolSample]:
+        """One frame of every enabled tool, with TX (text) or BX (binary) replies."""
+        if mode not in ("tx", "bx"):
+            raise ValueError(f"mode is 'tx' or 'bx', not {mode!r}")
+        params = f"{OPTION_TRANSFORMS:04X}"
+        with self._io:
+            raw = self.command(mode.upper(), params, binary=(mode == "bx"))
+            t = self.clock()
+        try:
+            reply = decode_bx(raw) if isinstance(raw, bytes) else decode_tx_text(raw)
+        except FrameError as err:
+            raise ProtocolError(f"tracker at {self.where}: malformed {mode.upper()} reply: {err}") from err
+        return self._samples(reply, t)
+
+    def _samples(self, reply: TrackingReply, t: float) -> list[ToolSample]:
+        samples = []
+        for record in reply.tools:
+            rom = self.tools.get(record.handle, f"handle-{record.handle:02x}")
+            if record.state != ToolState.VALID:
+                samples.append(ToolSample(record.handle, rom, record.frame, t, missing=True,
+                                          port_status=record.port_status,
+                                          disabled=record.state == ToolState.DISABLED))
+                continue
+            assert record.quaternion is not None and record.translation_mm is not None
+            transform = np.eye(4)
+            transform[:3, :3] = quaternion_to_matrix(record.quaternion)
+            transform[:3, 3] = record.translation_mm
+            samples.append(ToolSample(record.handle, rom, record.frame, t, missing=False, transform=transform,
+                                      quaternion=tuple(float(v) for v in record.quaternion),  # type: ignore[arg-type]
+                                      rms_mm=float(record.rms_mm or 0.0), port_status=record.port_status))
+        return samples
+
+    def command(self, name: str, params: str = "", *, timeout_s: float | None = None,
+                binary: bool = False) -> str | bytes:
+        """Send one command (CRC form); return the reply text without CRC, or a BX reply's bytes."""
+        label = f"{name}:{params[:24]}{'...' if len(params) > 24 else ''}"
+        deadline = time.monotonic() + (timeout_s if timeout_s is not None else self.reply_timeout_s)
+        with self._io:
+            if self._closed:
+                raise DeviceError(f"tracker at {self.where} is closed")
+            self._flush_input()
+            wire = encode_command(name, params)
+            log.debug("%s <- %r", self.where, wire)
+            self._io_call(self.port.write, wire)
+            first = self._read_exact(1, deadline, label)
+            if binary and reply_is_binary(first):
+                header = first + self._read_exact(BX_HEADER_BYTES - 1, deadline, label)
+                try:
+                    total = bx_total_length(header)
+                except FrameError as err:
+                    raise ProtocolError(f"tracker at {self.where}: bad BX header for {label}: {err}") from err
+                raw = header + self._read_exact(total - BX_HEADER_BYTES, deadline, label)
+                log.debug("%s -> %d BX bytes", self.where, len(raw))
+                return raw
+            text = self._read_text(deadline, label, first)
+        code = parse_error(text)
+        if code is not None:
+            raise NdiCommandError(label, code, self.where)
+        if text.startswith("WARNING"):
+            log.warning("%s: %s answered %s", self.where, label, text)
+        elif name in ("INIT", "COMM", "PVWR", "PINIT", "PENA", "PHF", "TSTART", "TSTOP") and text != OKAY:
+            raise ProtocolError(f"tracker at {self.where} answered {text[:40]!r} to {label} instead of OKAY")
+        return text
+
+    # -- bytes ----------------------------------------------------------------------------------------------
+    def _io_call(self, fn: Callable[..., object], *args: object) -> object:
+        try:
+            return fn(*args)
+        except serial.SerialTimeoutException as err:
+            raise DeviceTimeoutError(f"writing to the tracker at {self.where} timed out") from err
+        except (serial.SerialException, OSError) as err:
+            raise LinkLostError(f"link to the tracker at {self.where} lost: {err}") from err
+
+    def _flush_input(self) -> None:
+        # A tracker never speaks unprompted; anything waiting is the tail of an abandoned reply.
+        waiting = self._io_call(lambda: self.port.in_waiting)
+        if waiting:
+            log.warning("%s: discarding %s stale bytes", self.where, waiting)
+        self._io_call(self.port.reset_input_buffer)
+
+    def _read_exact(self, count: int, deadline: float, label: str) -> bytes:
+        data = bytearray()
+        while len(data) < count:
+            if time.monotonic() > deadline:
+                raise DeviceTimeoutError(self._silence(label, data))
+            data += self._io_call(self.port.read, count - len(data))  # type: ignore[operator]
+        return bytes(data)
+
+    def _read_text(self, deadline: float, label: str, first: bytes = b"") -> str:
+        data = bytearray(first)
+        while not data.endswith(CR):
+            if time.monotonic() > deadline:
+                raise DeviceTimeoutError(self._silence(label, data))
+            data += self._io_call(self.port.read, max(1, int(self._io_call(lambda: self.port.in_waiting))))  # type: ignore[operator, arg-type]
+            if len(data) > 4096:
+                raise ProtocolError(f"tracker at {self.where}: {len(data)} bytes without CR after {label}")
+        log.debug("%s -> %r", self.where, bytes(data))
+        try:
+            return decode_reply(bytes(data))
+        except FrameError as err:
+            raise ProtocolError(f"tracker at {self.where}: bad reply to {label}: {err}") from err
+
+    def _silence(self, label: str, partial: bytearray) -> str:
+        got = f" (got only {bytes(partial)[:40]!r})" if partial else ""
+        return f"no complete reply to {label} from the tracker at {self.where}{got}"
+
+    # -- background reader ----------------------------------------------------------------------------------
+    def start_streaming(self, mode: str = "tx", rate_hz: float = FRAME_RATE_HZ) -> None:
+        """Poll frames in a thread at ``rate_hz``; :meth:`latest` returns the newest. Needs :meth:`start` first."""
+        if self._reader is not None:
+            return
+        if not self.tracking:
+            raise DeviceError(f"tracker at {self.where}: start() tracking before streaming")
+        self._reader_stop.clear()
+        self._reader_error = None
+        self._reader = threading.Thread(target=self._read_loop, args=(mode, 1.0 / rate_hz),
+                                        name=f"ndi-reader-{self.where}", daemon=True)
+        self._reader.start()
+
+    def stop_streaming(self) -> None:
+        if self._reader is None:
+            return
+        self._reader_stop.set()
+        if self._reader is not threading.current_thread():
+            self._reader.join(timeout=2.0 + self.reply_timeout_s)
+        self._reader = None
+
+    def _read_loop(self, mode: str, period_s: float) -> None:
+        next_at = time.monotonic()
+        while not self._reader_stop.is_set():
+            try:
+                samples = self.read_frame(mode)
+            except BaseException as err:   # handed to the next caller of latest(), never swallowed
+                self._reader_error = err
+                log.error("%s: background reader stopped: %s", self.where, err)
+                with self._latest_changed:
+                    self._latest_changed.notify_all()
+                return
+            with self._latest_changed:
+                self._latest = samples
+                self._latest_changed.notify_all()
+            next_at = max(next_at + period_s, time.monotonic() - period_s)
+            self._reader_stop.wait(max(0.0, next_at - time.monotonic()))
+
+    def latest(self) -> list[ToolSample] | None:
+        """The newest frame the reader got (None before the first); re-raises the error that stopped it."""
+        if self._reader_error is not None:
+            raise self._reader_error
+        return self._latest
+
+    def wait_for_frame(self, newer_than: int = -1, timeout_s: float = 1.0) -> list[ToolSample]:
+        """Block until the reader has a frame numbered above ``newer_than``; DeviceTimeoutError otherwise."""
+        deadline = time.monotonic() + timeout_s
+        with self._latest_changed:
+            while True:
+                samples = self.latest()
+                if samples and samples[0].frame > newer_than:
+                    return samples
+                remaining = deadline - time.monotonic()
+                if remaining <= 0 or (self._reader is None and self._reader_error is None):
+                    raise DeviceTimeoutError(f"no frame after {newer_than} from the tracker at {self.where}")
+                self._latest_changed.wait(remaining)
+
+
+def parse_phsr_text(text: str) -> list[int]:
+    """Handles listed in a PHSR reply."""
+    try:
+        return [entry.handle for entry in parse_phsr(text)]
+    except FrameError as err:
+        raise ProtocolError(f"malformed PHSR reply {text!r}: {err}") from err
