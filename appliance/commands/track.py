@@ -119,17 +119,10 @@ class _Progress:
             sys.stderr.flush()
 
 
-def _nominal_length(robot: int) -> float | None:
-    from appliance.robots import load_robots
+def _nominal_length(robot: int) -> float:
+    from appliance.robots import load_robots, select_robot
 
-    robots = load_robots()
-    found = robots.get(robot) if isinstance(robots, dict) else next(
-        (r for r in robots if getattr(r, "number", None) == robot), None)
-    if found is None:
-        from appliance.errors import ConfigError
-        raise ConfigError(f"--robot {robot}: no such robot in config/robots.yaml")
-    length = getattr(found, "length_mm", None)
-    return float(length) if length is not None else None
+    return select_robot(load_robots(), robot).length_mm
 
 
 def track_folder(frames: BiplaneFolder, tracker: Any, out: IO[str], *, fps: float,
