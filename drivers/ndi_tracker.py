@@ -131,8 +131,13 @@ class NDITracker:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def connect(self, baudrate: int = 115200, *, probe_timeout_s: float = 0.5, reset_timeout_s: float = 10.0) -> None:
-        """INIT the tracker (break and RESET it if it does not answer), then COMM to ``baudrate`` on serial."""
+    def connect(self, baudrate: int = 115200, *, probe_timeout_s: float = 0.5, reset_timeout_s: float = 10.0,
+                free_all_handles: bool = True) -> None:
+        """INIT the tracker (break and RESET it if it does not answer), then COMM to ``baudrate`` on serial.
+
+        With ``free_all_handles`` the port handles a previous session left allocated are freed, so that
+        frames hold only the tools this session loads; otherwise only those the tracker marks to free.
+        """
         if not self.network:
             self.port.baudrate = POWER_ON_BAUD
         try:
@@ -152,7 +157,7 @@ class NDITracker:
             self.command("COMM", CommSettings(baudrate).encode_params())
             time.sleep(0.1)    # the tracker switches 100 ms after OKAY has left it
             self.port.baudrate = baudrate
-        self.free_unoccupied_handles()
+        self.free_handles(all_allocated=free_all_handles)
         log.info("%s: tracker initialised%s", self.where, "" if self.network else f" at {self.port.baudrate} baud")
 
     def _init(self, timeout_s: float) -> None:
@@ -187,9 +192,11 @@ class NDITracker:
         """The tracker's ``VER:0`` text (product, serial number, freeze tag...)."""
         return str(self.command("VER", "0"))
 
-    def free_unoccupied_handles(self) -> None:
-        for entry in parse_phsr_text(str(self.command("PHSR", "01"))):
-            self.command("PHF", f"{entry:02X}")
+    def free_handles(self, *, all_allocated: bool = False) -> None:
+        """Free the handles the tracker marks to be freed (PHSR 01), or every allocated handle (PHSR 00)."""
+        for handle in parse_phsr_text(str(self.command("PHSR", "00" if all_allocated else "01"))):
+            self.command("PHF", f"{handle:02X}")
+            self.tools.pop(handle, None)
 
     def load_tool(self, rom: str | Path | bytes, name: str | None = None) -> int:
         """Upload a passive tool definition (a .rom path or its bytes), initialise and enable it; returns the handle."""
