@@ -114,6 +114,7 @@ class Amplifier:
                 port.reset_input_buffer()
             self.info = self.identify()
             self.limits = self.info.limits
+            self.status()   # learn state and faults now: a previous session may have left a fault
             if limits is not None:
                 self.configure_limits(limits)
         except BaseException:

@@ -198,6 +198,8 @@ class Nak:
 Message = Union[Hello, Enable, Disable, Heartbeat, GetStatus, ClearFault, SetCurrents, ConfigureLimits,
                 HelloReply, SetCurrentsReply, Status, Ack, Nak]
 REQUESTS = (Hello, Enable, Disable, Heartbeat, GetStatus, ClearFault, SetCurrents, ConfigureLimits)
+REPLIES = (HelloReply, SetCurrentsReply, Status, Ack, Nak)
+MESSAGE_CLASSES: dict[MsgType, type] = {cls.TYPE: cls for cls in REQUESTS + REPLIES}
 _EMPTY = {cls.TYPE: cls for cls in (Hello, Enable, Disable, Heartbeat, GetStatus, ClearFault)}
 
 
@@ -424,6 +426,6 @@ def seq_newer(seq: int, than: int) -> bool:
 __all__ = [
     "PROTOCOL_VERSION", "MAX_CHANNELS", "MsgType", "State", "Fault", "NakReason", "Hello", "Enable", "Disable",
     "Heartbeat", "GetStatus", "ClearFault", "SetCurrents", "ConfigureLimits", "HelloReply", "SetCurrentsReply",
-    "Status", "Ack", "Nak", "Message", "REQUESTS", "PayloadError", "UnknownTypeError", "encode_payload",
+    "Status", "Ack", "Nak", "Message", "REQUESTS", "REPLIES", "MESSAGE_CLASSES", "PayloadError", "UnknownTypeError", "encode_payload",
     "encode_message", "decode_payload", "Envelope", "MessageDecoder", "seq_newer", "MESSAGE_REJECT_REASONS",
 ]

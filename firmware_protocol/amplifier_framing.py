@@ -63,12 +63,16 @@ def crc16_ccitt_false(data: bytes, crc: int = 0xFFFF) -> int:
 
 
 def cobs_encode(data: bytes) -> bytes:
-    """Consistent Overhead Byte Stuffing: the result contains no 0x00."""
-    out = bytearray()
+    """Consistent Overhead Byte Stuffing (Cheshire & Baker): the result contains no 0x00.
+
+    Standard form: a block of 254 non-zero bytes has code 0xFF and no implied zero; no empty block
+    follows one at the very end (``01..FE`` encodes as ``FF 01..FE``).
+    """
+    out = bytearray(b"\x00")   # placeholder for the first code byte
     code_index = 0
-    out.append(0)  # placeholder for the first code byte
     code = 1
-    for byte in data:
+    last = len(data) - 1
+    for i, byte in enumerate(data):
         if byte == 0:
             out[code_index] = code
             code_index = len(out)
@@ -79,6 +83,8 @@ def cobs_encode(data: bytes) -> bytes:
         code += 1
         if code == 0xFF:
             out[code_index] = code
+            if i == last:
+                return bytes(out)
             code_index = len(out)
             out.append(0)
             code = 1
