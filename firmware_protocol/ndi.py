@@ -312,15 +312,16 @@ def encode_phsr(entries: list[PortHandleStatus]) -> str:
 
 
 def parse_phsr(text: str) -> list[PortHandleStatus]:
-    try:
-        count = int(text[:2], 16)
-        entries = [PortHandleStatus(int(text[2 + 5 * i:4 + 5 * i], 16), int(text[4 + 5 * i:7 + 5 * i], 16))
-                   for i in range(count)]
-    except ValueError as err:
-        raise FrameError(f"PHSR reply {text!r} is not hex") from err
+    def hex_at(start: int, end: int) -> int:
+        try:
+            return int(text[start:end], 16)
+        except ValueError as err:
+            raise FrameError(f"PHSR reply {text!r} is not hex at {start}") from err
+
+    count = hex_at(0, 2)
     if len(text) < 2 + 5 * count:
         raise FrameError(f"PHSR reply {text!r} announces {count} handles but is {len(text)} characters long")
-    return entries
+    return [PortHandleStatus(hex_at(2 + 5 * i, 4 + 5 * i), hex_at(4 + 5 * i, 7 + 5 * i)) for i in range(count)]
 
 
 def parse_phrq(text: str) -> int:
