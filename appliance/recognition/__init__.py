@@ -1,0 +1,34 @@
+"""Posture recognition: from a biplane pair of X-ray frames to the robot's 3D position and axis.
+
+The pipeline, one module per stage (each stage is a plain function, so it can be timed alone):
+
+* :mod:`.segmentation` - attenuation image, background, robot candidates (:func:`segment`);
+* :mod:`.features` - PCA features per view (:func:`weighted_features`, the paper's :func:`paper_features`);
+* :mod:`.correspondence` - tip pairing cases A/B by geometric epipolar distance (:func:`choose_pairing`);
+* :mod:`.reconstruction` - centroid, axis, tips, head, length (:func:`reconstruct`);
+* :mod:`.tracker` - ROI tracking over frames (:class:`PostureTracker`), producing :class:`Posture` records.
+"""
+from __future__ import annotations
+
+from appliance.recognition.correspondence import Pairing, choose_pairing, pair_candidates, pairing_rms
+from appliance.recognition.features import (
+    Features2D,
+    axial_profile,
+    features,
+    paper_features,
+    paper_features_from_points,
+    weighted_features,
+    weighted_moments,
+)
+from appliance.recognition.posture import Posture, ViewObservation
+from appliance.recognition.reconstruction import Reconstruction, reconstruct
+from appliance.recognition.segmentation import Blob, Roi, attenuation, log_background, noise_sigma, segment
+from appliance.recognition.settings import RecognitionSettings
+from appliance.recognition.tracker import PostureTracker
+
+__all__ = [
+    "Blob", "Features2D", "Pairing", "Posture", "PostureTracker", "RecognitionSettings", "Reconstruction", "Roi",
+    "ViewObservation", "attenuation", "axial_profile", "choose_pairing", "features", "log_background",
+    "noise_sigma", "pair_candidates", "pairing_rms", "paper_features", "paper_features_from_points", "reconstruct",
+    "segment", "weighted_features", "weighted_moments",
+]

@@ -1,0 +1,175 @@
+"""2D features of the robot's image by principal component analysis: centroid, axes, eigenvalues, tips.
+
+Two estimators:
+
+* :func:`paper_features` is the seed paper's eq. 2-3 verbatim: the binary pixel cloud's mean, its
+  covariance with ``1/(n-1)``, the closed-form eigenvalues and major eigenvector, tips at
+  ``c +- 2 sqrt(lambda1) v``. (For a uniform rod the half-length is ``sqrt(3 lambda1)``, so those tips
+  overshoot; see architecture.md, known traps.)
+* :func:`weighted_features` uses attenuation-weighted moments: with weights proportional to the path
+  length through the body, the weighted centroid is the projection of the body's volume centroid (a
+  binary silhouette's is not, for a cone-tipped body), and the axis is the symmetry line of the image.
+  The tips come from the axial profile (the weights summed across the axis, proportional to the body's
+  cross-section area): a flat end is a blurred step, located at its half-height; a conical end's
+  profile falls as the square of the distance to the apex, so ``sqrt(profile)`` is a straight line whose
+  zero is the apex. The longer ramp of a conical end also identifies the head of a bullet-shaped robot.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from appliance.recognition.segmentation import Blob
+from appliance.recognition.settings import RecognitionSettings
+
+#: Profile levels (fractions of the plateau) measured at each end; 0.25 and 0.64 are where
+#: sqrt(profile) is 0.5 and 0.8 of the plateau's, the two points of the apex extrapolation.
+_LEVELS = (0.2, 0.25, 0.5, 0.64, 0.8)
+
+
+@dataclass(frozen=True)
+class Features2D:
+    """Features of one view's robot image, in observed image pixels.
+
+    ``tips[0]`` is the end along ``+axis``, ``tips[1]`` along ``-axis``. ``reach`` holds, per end, the
+    outward distance (px from the centroid along the axis) at which the profile falls to each level of
+    ``_LEVELS``; None for the paper's estimator.
+    """
+
+    centroid: np.ndarray
+    axis: np.ndarray
+    eigenvalues: tuple[float, float]
+    tips: np.ndarray
+    pixel_count: int
+    head_index: int | None = None
+    ramp_px: tuple[float, float] | None = None
+    reach: tuple[dict[float, float], dict[float, float]] | None = None
+
+    def tip_distance(self, end: int, conical: bool) -> float:
+        """Outward distance (px) of end ``end`` (0: +axis, 1: -axis) from the centroid."""
+        if self.reach is None:
+            return float(np.dot(self.tips[end] - self.centroid, self.axis) * (1 if end == 0 else -1))
+        r = self.reach[end]
+        if conical:
+            # sqrt(P) = (e_apex - e) / Lc: two levels give Lc and the apex.
+            cone = (r[0.25] - r[0.64]) / (0.8 - 0.5)
+            return r[0.25] + 0.5 * cone
+        return r[0.5]
+
+    def with_head(self, head_index: int | None) -> Features2D:
+        """The same features with the tips re-estimated for a known (or unknown) head end."""
+        tips = np.array([self.centroid + self.axis * self.tip_distance(0, head_index == 0),
+                         self.centroid - self.axis * self.tip_distance(1, head_index == 1)])
+        return Features2D(self.centroid, self.axis, self.eigenvalues, tips, self.pixel_count,
+                          head_index, self.ramp_px, self.reach)
+
+
+def _eig2(s11: float, s22: float, s12: float) -> tuple[float, float, np.ndarray]:
+    """Eigenvalues (l1 >= l2) and the major unit eigenvector of a 2x2 covariance (paper eq. 3)."""
+    root = np.sqrt((s11 - s22) ** 2 + 4.0 * s12 * s12)
+    l1, l2 = 0.5 * (s11 + s22 + root), 0.5 * (s11 + s22 - root)
+    norm = np.hypot(l1 - s11, s12)
+    if norm < 1e-12:  # axis-aligned: the formula's 0/0; the major axis is x when s11 >= s22
+        v = np.array([1.0, 0.0]) if s11 >= s22 else np.array([0.0, 1.0])
+    else:
+        v = np.array([s12, l1 - s11]) / norm
+    return float(l1), float(l2), v
+
+
+def paper_features_from_points(points: np.ndarray) -> Features2D:
+    """Eq. 2-3 of the seed paper on a point cloud (N,2) of ``[x, y]`` pixels."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    n = len(pts)
+    if n < 2:
+        raise ValueError(f"PCA needs at least 2 points, got {n}")
+    c = pts.mean(axis=0)
+    d = pts - c
+    s11, s22, s12 = (float(np.dot(d[:, 0], d[:, 0])) / (n - 1), float(np.dot(d[:, 1], d[:, 1])) / (n - 1),
+                     float(np.dot(d[:, 0], d[:, 1])) / (n - 1))
+    l1, l2, v = _eig2(s11, s22, s12)
+    half = 2.0 * np.sqrt(max(l1, 0.0))
+    return Features2D(c, v, (l1, l2), np.array([c + half * v, c - half * v]), n)
+
+
+def paper_features(blob: Blob) -> Features2D:
+    """The paper's estimator on the blob's binary pixel cloud."""
+    ys, xs = np.nonzero(blob.mask)
+    points = np.column_stack([xs + blob.window.x0, ys + blob.window.y0]).astype(np.float64)
+    return paper_features_from_points(points)
+
+
+def weighted_moments(weights: np.ndarray) -> tuple[np.ndarray, float, float, float, float]:
+    """Weighted centroid (local px) and central second moments ``s11, s22, s12`` and total weight."""
+    m = cv2.moments(weights)
+    w = m["m00"]
+    if w <= 0:
+        raise ValueError("weights sum to zero or less")
+    return np.array([m["m10"] / w, m["m01"] / w]), m["mu20"] / w, m["mu02"] / w, m["mu11"] / w, w
+
+
+def axial_profile(weights: np.ndarray, centroid: np.ndarray, axis: np.ndarray) -> tuple[np.ndarray, float]:
+    """Weights summed in 1-px bins of the axial coordinate ``s`` (linear interpolation between bins).
+
+    Returns the profile and ``s`` of its bin 0; bin ``i`` is at ``s0 + i``.
+    """
+    ys, xs = np.nonzero(weights)
+    w = weights[ys, xs].astype(np.float64)
+    s = (xs - centroid[0]) * axis[0] + (ys - centroid[1]) * axis[1]
+    s0 = float(np.floor(s.min())) - 2.0
+    u = s - s0
+    i = u.astype(np.int64)
+    frac = u - i
+    n = int(i.max()) + 4
+    profile = np.bincount(i, w * (1.0 - frac), n) + np.bincount(i + 1, w * frac, n)
+    # A [1 2 1]/4 smoothing: symmetric, so it moves no crossing of a symmetric edge.
+    profile[1:-1] = 0.25 * profile[:-2] + 0.5 * profile[1:-1] + 0.25 * profile[2:]
+    return profile, s0
+
+
+def _reach(profile: np.ndarray, s0: float, level: float, direction: int) -> float:
+    """Outward distance from s = 0 where the profile last exceeds ``level`` on one side (sub-bin)."""
+    above = np.flatnonzero(profile >= level)
+    if direction > 0:
+        j = int(above.max())
+        if j + 1 >= len(profile):
+            return s0 + j
+        step = profile[j] - profile[j + 1]
+        return s0 + j + ((profile[j] - level) / step if step > 0 else 0.0)
+    j = int(above.min())
+    if j == 0:
+        return -(s0 + j)
+    step = profile[j] - profile[j - 1]
+    return -(s0 + j - ((profile[j] - level) / step if step > 0 else 0.0))
+
+
+def weighted_features(blob: Blob, settings: RecognitionSettings | None = None) -> Features2D:
+    """Attenuation-weighted PCA, sub-pixel tips from the axial profile, and the head end if it shows."""
+    settings = settings or RecognitionSettings()
+    local_c, s11, s22, s12, _ = weighted_moments(blob.weights)
+    l1, l2, v = _eig2(s11, s22, s12)
+    profile, s0 = axial_profile(blob.weights, local_c, v)
+    plateau = float(profile.max())
+    reach: list[dict[float, float]] = [{}, {}]
+    for level in _LEVELS:
+        reach[0][level] = _reach(profile, s0, level * plateau, +1)
+        reach[1][level] = _reach(profile, s0, level * plateau, -1)
+    ramps = (reach[0][0.2] - reach[0][0.8], reach[1][0.2] - reach[1][0.8])
+    head: int | None = None
+    for end in (0, 1):
+        long_, short = ramps[end], ramps[1 - end]
+        if long_ >= settings.head_ramp_ratio * max(short, 1e-6) and long_ - short >= settings.head_min_ramp_px:
+            head = end
+    origin = np.array([blob.window.x0, blob.window.y0], dtype=np.float64)
+    base = Features2D(local_c + origin, v, (l1, l2), np.zeros((2, 2)), blob.pixel_count, None,
+                      (float(ramps[0]), float(ramps[1])), (reach[0], reach[1]))
+    return base.with_head(head)
+
+
+def features(blob: Blob, settings: RecognitionSettings | None = None) -> Features2D:
+    """The features of the configured estimator (``settings.estimator``)."""
+    settings = settings or RecognitionSettings()
+    if settings.estimator == "paper":
+        return paper_features(blob)
+    return weighted_features(blob, settings)

@@ -1,0 +1,235 @@
+"""3D posture from the two views' features: centroid, axis, tips, head, length, reprojection error.
+
+Default (``weighted``) method, built so the orientation is not spoiled by the tips (architecture.md,
+known traps):
+
+* centroid: the weighted image centroids, triangulated with the optimal (Hartley-Sturm) correction;
+* axis line: each view's 2D axis back-projects to a plane through its source that holds the 3D axis,
+  so the axis is the intersection of the two planes through the centroid. When the planes (nearly)
+  coincide - the axis lies in an epipolar plane - the line's direction inside that plane comes from the
+  triangulated tips of the chosen pairing instead, and the pairing must come from the A/B test, the
+  head's asymmetry or the previous frames (the frame is then flagged ``ambiguous``);
+* tips: each view's 2D tip back-projects to a ray; its closest point on the axis line gives the tip's
+  position along the axis, and the views are averaged with weight ``sin^2`` of the ray-axis angle (a
+  ray nearly along the axis says little about where along it the tip is);
+* head: the conical end's longer intensity ramp, in whichever views show it, mapped to the same end
+  of the 3D axis; views that disagree leave the head unidentified.
+
+The ``paper`` method triangulates the tips of the chosen pairing (linear triangulation) and takes the
+axis from them, as in the seed paper.
+"""
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from appliance.geometry import Calibration, View, reprojection_error_px, triangulate
+from appliance.recognition.correspondence import CASE_A, CASE_B, Pairing, choose_pairing
+from appliance.recognition.features import Features2D
+from appliance.recognition.settings import RecognitionSettings
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Reconstruction:
+    """The 3D result of one frame pair (``direction`` None when a mirror ambiguity is unresolved)."""
+
+    centroid: np.ndarray
+    direction: np.ndarray | None
+    tips: np.ndarray | None  # (2,3), head first when head_identified, else +direction end first
+    head_identified: bool
+    length_mm: float | None
+    reprojection_px: float | None
+    pairing: Pairing
+    plane_angle_deg: float
+    ambiguous: bool = False
+    reasons: list[str] = field(default_factory=list)
+    candidates: list[np.ndarray] | None = None
+    #: Per view, the 2D tips ordered like ``tips`` (head first when identified) and the head's 2D index.
+    view_tips: dict[str, np.ndarray] = field(default_factory=dict)
+    view_features: dict[str, Features2D] = field(default_factory=dict)
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v)
+
+
+def line_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    """Angle between two lines (sign of the directions ignored), degrees."""
+    c = abs(float(np.dot(_unit(a), _unit(b))))
+    return math.degrees(math.acos(min(1.0, c)))
+
+
+def axis_plane(view: View, feat: Features2D) -> np.ndarray:
+    """The plane ``(n, d)`` through the view's source and the 2D axis line of ``feat``."""
+    half = max(2.0, math.sqrt(max(feat.eigenvalues[0], 0.0)))
+    return view.backproject_plane(feat.centroid - half * feat.axis, feat.centroid + half * feat.axis)
+
+
+def ray_line_parameters(view: View, pixels: np.ndarray, point: np.ndarray, direction: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """For each pixel's ray, the parameter ``b`` of its closest point ``point + b direction`` on the line,
+    and the weight ``sin^2`` of the ray-line angle (how well the ray pins ``b`` down)."""
+    origins, rays = view.rays(pixels)
+    k = rays @ direction
+    w0 = origins - point
+    sin2 = np.maximum(1.0 - k * k, 1e-12)
+    b = (w0 @ direction - k * np.einsum("ij,ij->i", w0, rays)) / sin2
+    return b, sin2
+
+
+def _hypotheses(calibration: Calibration, feat_p: Features2D, feat_q: Features2D, optimal: bool
+                ) -> dict[str, np.ndarray]:
+    """Triangulated tips (2,3) for cases A and B; row 0 comes from p's tip 0 (its +axis end)."""
+    out = {}
+    for case, order in ((CASE_A, [0, 1]), (CASE_B, [1, 0])):
+        out[case] = triangulate(calibration.p, calibration.q, feat_p.tips, feat_q.tips[order], optimal=optimal)
+    return out
+
+
+def _resolve(pairing: Pairing, hyps: dict[str, np.ndarray], feat_p: Features2D, feat_q: Features2D,
+             previous: np.ndarray | None, use_heads: bool) -> tuple[str | None, str]:
+    """Pick case A/B for an unseparated pairing: by the heads, then by the previous direction."""
+    if use_heads and feat_p.head_index is not None and feat_q.head_index is not None:
+        case = CASE_A if feat_p.head_index == feat_q.head_index else CASE_B
+        return case, "resolved by the head seen in both views"
+    if previous is not None:
+        scores = {c: abs(float(np.dot(_unit(t[0] - t[1]), previous))) for c, t in hyps.items()
+                  if np.all(np.isfinite(t))}
+        if scores:
+            return max(scores, key=scores.__getitem__), "resolved from the previous frames' direction"
+    return None, "no previous frame to resolve it"
+
+
+def reconstruct(calibration: Calibration, F: np.ndarray, feat_p: Features2D, feat_q: Features2D,
+                settings: RecognitionSettings, previous_direction: np.ndarray | None = None) -> Reconstruction:
+    """The 3D posture from both views' features (see the module docstring for the method)."""
+    p, q = calibration.p, calibration.q
+    paper = settings.estimator == "paper"
+    centroid = triangulate(p, q, feat_p.centroid, feat_q.centroid, optimal=not paper)[0]
+    pairing = choose_pairing(F, p.undistort_points(feat_p.tips), q.undistort_points(feat_q.tips),
+                             settings.ambiguity_px)
+    n_p, n_q = axis_plane(p, feat_p)[:3], axis_plane(q, feat_q)[:3]
+    cross = np.cross(n_p, n_q)
+    plane_angle = math.degrees(math.asin(min(1.0, float(np.linalg.norm(cross)))))
+    hyps = _hypotheses(calibration, feat_p, feat_q, optimal=not paper)
+    reasons: list[str] = []
+    ambiguous = False
+    case: str | None = pairing.case
+    degenerate = paper or plane_angle < settings.min_plane_angle_deg
+
+    if not degenerate:
+        d = _unit(cross)
+        # The planes fix the line; the case is the one whose tips run along it.
+        implied = min(hyps, key=lambda c: line_angle_deg(hyps[c][0] - hyps[c][1], d)
+                      if np.all(np.isfinite(hyps[c])) else 180.0)
+        case = implied
+        tips_dir = hyps[implied][0] - hyps[implied][1]
+        if np.all(np.isfinite(tips_dir)) and np.dot(tips_dir, d) < 0:
+            d = -d
+        disagreement = line_angle_deg(tips_dir, d) if np.all(np.isfinite(tips_dir)) else 90.0
+        if pairing.separated and implied != pairing.case:
+            ambiguous = True
+            reasons.append(f"the axis planes imply pairing {implied} but the tips' epipolar test says "
+                           f"{pairing.case} (RMS A {pairing.rms_a_px:.1f} px, B {pairing.rms_b_px:.1f} px)")
+        elif disagreement > settings.max_axis_disagreement_deg:
+            ambiguous = True
+            reasons.append(f"the axis from the two views' planes and from the triangulated tips differ by "
+                           f"{disagreement:.1f} deg")
+    elif pairing.separated:
+        d = hyps[pairing.case][0] - hyps[pairing.case][1]
+    else:
+        ambiguous = True
+        what = (f"pairings A and B fit equally well (RMS epipolar distance {pairing.rms_a_px:.1f} vs "
+                f"{pairing.rms_b_px:.1f} px)")
+        if not paper:
+            what = f"the axis lies within {plane_angle:.1f} deg of an epipolar plane: " + what
+        case, how = _resolve(pairing, hyps, feat_p, feat_q, previous_direction, use_heads=not paper)
+        reasons.append(f"{what}; {how}")
+        if case is None:
+            return Reconstruction(centroid, None, None, False, None, None, pairing, plane_angle, True, reasons,
+                                  [_unit(hyps[c][0] - hyps[c][1]) for c in (CASE_A, CASE_B)],
+                                  {"p": feat_p.tips, "q": feat_q.tips}, {"p": feat_p, "q": feat_q})
+        d = hyps[case][0] - hyps[case][1]
+    if not np.all(np.isfinite(d)) or np.linalg.norm(d) < 1e-9:
+        raise ValueError("triangulated tips coincide or lie behind a source")
+    d = _unit(d)
+    if paper:
+        return _finish_paper(calibration, centroid, d, hyps[case or pairing.case], feat_p, feat_q, pairing,
+                             plane_angle, ambiguous, reasons, previous_direction)
+    return _finish_weighted(calibration, centroid, d, feat_p, feat_q, pairing, plane_angle, ambiguous, reasons,
+                            previous_direction)
+
+
+def _finish_paper(calibration: Calibration, centroid: np.ndarray, d: np.ndarray, tips: np.ndarray,
+                  feat_p: Features2D, feat_q: Features2D, pairing: Pairing, plane_angle: float, ambiguous: bool,
+                  reasons: list[str], previous: np.ndarray | None) -> Reconstruction:
+    q_order = [0, 1] if np.dot(tips[0] - tips[1], d) >= 0 else [1, 0]
+    tips = tips[q_order]
+    # Which q tip went with p's tip 0 is the case; reorder q's 2D tips like the 3D ones.
+    case_tips_q = feat_q.tips if pairing.case == CASE_A else feat_q.tips[::-1]
+    view_tips = {"p": feat_p.tips[q_order], "q": case_tips_q[q_order]}
+    if previous is not None and np.dot(d, previous) < 0:
+        d, tips = -d, tips[::-1]
+        view_tips = {k: v[::-1] for k, v in view_tips.items()}
+    reproj = _reprojection(calibration, centroid, tips, feat_p, feat_q, view_tips)
+    return Reconstruction(centroid, d, tips, False, float(np.linalg.norm(tips[0] - tips[1])), reproj, pairing,
+                          plane_angle, ambiguous, reasons, None, view_tips, {"p": feat_p, "q": feat_q})
+
+
+def _finish_weighted(calibration: Calibration, centroid: np.ndarray, d: np.ndarray, feat_p: Features2D,
+                     feat_q: Features2D, pairing: Pairing, plane_angle: float, ambiguous: bool, reasons: list[str],
+                     previous: np.ndarray | None) -> Reconstruction:
+    views = {"p": (calibration.p, feat_p), "q": (calibration.q, feat_q)}
+    # Which 2D tip of each view is the +d end, and where the views put the head.
+    plus_index: dict[str, int] = {}
+    votes: list[bool] = []  # True: the head is the +d end
+    for name, (view, feat) in views.items():
+        b, _ = ray_line_parameters(view, feat.tips, centroid, d)
+        plus_index[name] = 0 if b[0] >= b[1] else 1
+        if feat.head_index is not None:
+            votes.append(feat.head_index == plus_index[name])
+    head_identified = bool(votes) and all(v == votes[0] for v in votes)
+    if votes and not head_identified:
+        reasons.append("the two views disagree on which end is the head")
+    if head_identified and not votes[0]:
+        d = -d
+        plus_index = {k: 1 - v for k, v in plus_index.items()}
+    elif not head_identified and previous is not None and np.dot(d, previous) < 0:
+        d = -d
+        plus_index = {k: 1 - v for k, v in plus_index.items()}
+    # Re-estimate each view's tips with the head's (conical) end model where the head is known, then
+    # place both ends on the 3D axis.
+    sums = np.zeros(2)
+    weights = np.zeros(2)
+    view_tips: dict[str, np.ndarray] = {}
+    final: dict[str, Features2D] = {}
+    for name, (view, feat) in views.items():
+        plus = plus_index[name]
+        feat = feat.with_head(plus if head_identified else None)
+        final[name] = feat
+        ordered = feat.tips[[plus, 1 - plus]]
+        view_tips[name] = ordered
+        b, sin2 = ray_line_parameters(view, ordered, centroid, d)
+        sums += b * sin2
+        weights += sin2
+    b_plus, b_minus = sums / weights
+    tips = np.array([centroid + b_plus * d, centroid + b_minus * d])
+    reproj = _reprojection(calibration, centroid, tips, final["p"], final["q"], view_tips)
+    return Reconstruction(centroid, d, tips, head_identified, float(b_plus - b_minus), reproj, pairing, plane_angle,
+                          ambiguous, reasons, None, view_tips, final)
+
+
+def _reprojection(calibration: Calibration, centroid: np.ndarray, tips: np.ndarray, feat_p: Features2D,
+                  feat_q: Features2D, view_tips: dict[str, np.ndarray]) -> float | None:
+    """RMS (px) over centroid and both tips, both views, of projected 3D points against measured 2D ones."""
+    X = np.vstack([centroid[None, :], tips])
+    uv_p = np.vstack([feat_p.centroid[None, :], view_tips["p"]])
+    uv_q = np.vstack([feat_q.centroid[None, :], view_tips["q"]])
+    err = reprojection_error_px(calibration.p, calibration.q, X, uv_p, uv_q)
+    value = float(np.sqrt(np.mean(err ** 2)))
+    return value if math.isfinite(value) else None

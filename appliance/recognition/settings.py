@@ -1,0 +1,72 @@
+"""Tuning of the posture recognition pipeline, validated like any config section.
+
+Every threshold is relative: to the image noise (multiples of the robust standard deviation of the
+attenuation image), to the robot's own peak attenuation, or a geometric tolerance in pixels/degrees.
+None is an absolute gray level, so the same settings hold for any tube current or detector gain.
+"""
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field
+
+from appliance.config_io import StrictModel
+
+
+class RecognitionSettings(StrictModel):
+    """Settings of :class:`appliance.recognition.PostureTracker`; defaults are what the accuracy benchmark measured best."""
+
+    #: ``weighted``: attenuation-weighted moments, sub-pixel tips from the axial profile, 3D axis from the
+    #: two back-projected axis planes. ``paper``: the seed paper's eq. 2-3 on the binary pixel cloud, tips at
+    #: ``c +- 2 sqrt(lambda1) v`` and the axis from the triangulated tips.
+    estimator: Literal["weighted", "paper"] = "weighted"
+
+    # -- segmentation ---------------------------------------------------------------------------------
+    #: Size (px) of the grey closing that estimates the open-field background; larger than any robot's width.
+    background_scale_px: int = Field(48, ge=8, le=512)
+    #: Candidate pixels: smoothed attenuation above this many noise standard deviations.
+    detect_sigma: float = Field(6.0, gt=0)
+    #: The robot's core: smoothed attenuation above this fraction of the component's peak (excludes the
+    #: weaker contrast-filled vessel the robot sits in).
+    core_fraction: float = Field(0.35, gt=0, lt=1)
+    #: The weighted support: attenuation above the local baseline by this fraction of the peak ...
+    support_fraction: float = Field(0.08, gt=0, lt=1)
+    #: ... and by at least this many noise standard deviations; then dilated by ``support_dilate_px``
+    #: so that the blurred rim is weighed too.
+    support_sigma: float = Field(3.0, gt=0)
+    support_dilate_px: int = Field(2, ge=0, le=8)
+    #: Width (px) of the ring around the robot whose median attenuation is the local (vessel) baseline.
+    ring_px: int = Field(3, ge=1, le=16)
+    #: Smallest and largest plausible robot images (pixels of the core, extent in px).
+    min_pixels: int = Field(8, ge=1)
+    max_extent_px: int = Field(420, ge=8)
+    #: Weakest plausible robot: peak attenuation -log(I/I0) at least this (a physical floor for a metal
+    #: body of >= 1 mm, not a gray level; it keeps an empty frame from "finding" noise or the vessel).
+    min_peak_attenuation: float = Field(0.25, gt=0)
+    #: Largest aspect ratio sqrt(l1/l2) of a robot (a contrast-filled vessel is longer and thinner).
+    max_elongation: float = Field(40.0, gt=1)
+
+    # -- correspondence and reconstruction ------------------------------------------------------------
+    #: Two views' blobs pair up only if their centroids are within this epipolar distance (px).
+    epipolar_band_px: float = Field(6.0, gt=0)
+    #: Pairings A/B are "clearly separated" when the worse RMS epipolar distance exceeds the better by
+    #: this many pixels; otherwise the frame is ambiguous.
+    ambiguity_px: float = Field(3.0, gt=0)
+    #: Below this angle between the two back-projected axis planes the axis lies (nearly) in an
+    #: epipolar plane and cannot be taken from the planes.
+    min_plane_angle_deg: float = Field(4.0, ge=0, le=90)
+    #: The axis from the planes and the axis from the triangulated tips must agree within this angle;
+    #: otherwise one view's blob is not the robot (flagged, never silently reported).
+    max_axis_disagreement_deg: float = Field(12.0, gt=0, le=90)
+    #: Head identification: the conical end's intensity ramp must be this many times longer than the
+    #: flat end's, and longer by at least ``head_min_ramp_px``.
+    head_ramp_ratio: float = Field(1.6, gt=1)
+    head_min_ramp_px: float = Field(1.0, ge=0)
+
+    # -- tracking -----------------------------------------------------------------------------------
+    #: Margin (px) of the region of interest around the predicted robot image.
+    roi_margin_px: int = Field(14, ge=4, le=256)
+    #: The ROI blob must lie within this distance (px) of the predicted image centroid.
+    gate_px: float = Field(40.0, gt=0)
+    #: After this many consecutive lost frames the history (velocity, direction) is forgotten.
+    max_lost_frames: int = Field(5, ge=0)

@@ -1,0 +1,214 @@
+"""Frame-to-frame posture tracking: a region of interest around the prediction, full-frame fallback.
+
+``PostureTracker.process(image_p, image_q, frame=n, t=s)`` runs the whole pipeline on one biplane pair
+and returns a :class:`Posture`. While the robot is tracked, each view is searched only inside a region
+of interest (ROI) around the constant-velocity prediction of the robot's image, and the background
+estimate is a slice of the one computed at the last full-frame detection, so a steady-state frame
+touches only a few thousand pixels per view. When the ROI search fails (nothing plausible, the blob
+reaches the ROI's edge, or it is far from the prediction), the frame falls back to a full-frame
+detection, where the background is re-estimated and candidate blobs of the two views are paired by
+the epipolar constraint. A frame where that fails too is reported lost (``ok: false`` with a reason),
+never with a made-up pose.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from appliance.errors import InputDataError
+from appliance.geometry import Calibration, fundamental_matrix
+from appliance.recognition.correspondence import pair_candidates
+from appliance.recognition.features import Features2D, features
+from appliance.recognition.posture import Posture, ViewObservation
+from appliance.recognition.reconstruction import Reconstruction, reconstruct
+from appliance.recognition.segmentation import Blob, Roi, log_background, segment
+from appliance.recognition.settings import RecognitionSettings
+
+log = logging.getLogger(__name__)
+
+VIEWS = ("p", "q")
+
+
+@dataclass
+class _Track:
+    """What the tracker remembers of the last recognised frames."""
+
+    t: float
+    centroid: np.ndarray
+    direction: np.ndarray | None
+    length_mm: float | None
+    velocity: np.ndarray  # mm/s, zero until two frames are known
+    lost_frames: int = 0
+
+
+class PostureTracker:
+    """Recognises the robot's posture in successive biplane frame pairs (see the module docstring)."""
+
+    def __init__(self, calibration: Calibration, settings: RecognitionSettings | None = None) -> None:
+        self.calibration = calibration
+        self.settings = settings or RecognitionSettings()
+        self.F = fundamental_matrix(calibration.p, calibration.q)
+        self._log_bg: dict[str, np.ndarray] = {}
+        self._track: _Track | None = None
+        self._last_search = "none"
+
+    def reset(self) -> None:
+        """Forget the history and the cached backgrounds (the next frame is a full-frame detection)."""
+        self._log_bg.clear()
+        self._track = None
+
+    @property
+    def tracking(self) -> bool:
+        """True while the last frames give a prediction, i.e. the next frame searches ROIs first."""
+        return self._track is not None
+
+    @property
+    def last_search(self) -> str:
+        """How the last frame was searched: ``"roi"``, ``"full"`` or ``"none"`` (for tests and diagnostics)."""
+        return self._last_search
+
+    # ---------------------------------------------------------------------------------------- API
+    def process(self, image_p: np.ndarray, image_q: np.ndarray, *, frame: int = 0, t: float = 0.0) -> Posture:
+        """Recognise the robot in one biplane pair (raw detector intensities, robot darker than surroundings)."""
+        images = {"p": self._checked(image_p, "p", frame), "q": self._checked(image_q, "q", frame)}
+        timings = {"segmentation": 0.0, "features": 0.0, "correspondence": 0.0, "triangulation": 0.0}
+        found = self._search_rois(images, t, timings) if self._track is not None else None
+        if found is None:
+            found, failure = self._search_full(images, timings)
+            if found is None:
+                self._lose()
+                posture = Posture.lost(frame, t, failure)
+                posture.timings_us = timings
+                return posture
+        blobs, feats = found
+        start = time.perf_counter_ns()
+        previous = self._track.direction if self._track is not None else None
+        try:
+            rec = reconstruct(self.calibration, self.F, feats["p"], feats["q"], self.settings, previous)
+        except ValueError as err:
+            self._lose()
+            posture = Posture.lost(frame, t, f"reconstruction failed: {err}")
+            posture.timings_us = timings
+            return posture
+        timings["triangulation"] = (time.perf_counter_ns() - start) / 1e3
+        posture = self._posture(frame, t, rec, blobs)
+        posture.timings_us = timings
+        self._remember(posture)
+        return posture
+
+    # ----------------------------------------------------------------------------------- searches
+    def _checked(self, image: np.ndarray, name: str, frame: int) -> np.ndarray:
+        w, h = self.calibration.views[name].image_size
+        if not isinstance(image, np.ndarray) or image.ndim != 2:
+            raise InputDataError(f"frame {frame}, view {name}: expected a 2D grayscale image, "
+                                 f"got shape {getattr(image, 'shape', None)}")
+        if image.shape != (h, w):
+            raise InputDataError(f"frame {frame}, view {name}: image is {image.shape[1]}x{image.shape[0]} px "
+                                 f"but the calibration says {w}x{h}")
+        return image
+
+    def _features(self, blob: Blob) -> Features2D:
+        return features(blob, self.settings)
+
+    def _search_rois(self, images: dict[str, np.ndarray], t: float, timings: dict[str, float]
+                     ) -> tuple[dict[str, Blob], dict[str, Features2D]] | None:
+        track = self._track
+        assert track is not None
+        centre = track.centroid + track.velocity * (t - track.t)
+        half = 0.5 * (track.length_mm or 0.0) + 1.0
+        direction = track.direction if track.direction is not None else np.zeros(3)
+        points = np.array([centre, centre + half * direction, centre - half * direction])
+        blobs: dict[str, Blob] = {}
+        start = time.perf_counter_ns()
+        for name in VIEWS:
+            view = self.calibration.views[name]
+            projected = view.project(points)
+            roi = Roi.around(projected, self.settings.roi_margin_px, images[name].shape)
+            if roi is None or name not in self._log_bg:
+                return None
+            candidates = segment(images[name], self._log_bg[name], roi, self.settings)
+            predicted = projected[0]
+            near = [b for b in candidates if not b.touches_border
+                    and np.hypot(b.centroid_px[0] - predicted[0], b.centroid_px[1] - predicted[1])
+                    <= self.settings.gate_px]
+            if not near:
+                log.debug("view %s: robot not found in ROI %s; falling back to full frame", name, roi)
+                return None
+            blobs[name] = near[0]
+        timings["segmentation"] += (time.perf_counter_ns() - start) / 1e3
+        start = time.perf_counter_ns()
+        feats = {name: self._features(blobs[name]) for name in VIEWS}
+        timings["features"] += (time.perf_counter_ns() - start) / 1e3
+        self._last_search = "roi"
+        return blobs, feats
+
+    def _search_full(self, images: dict[str, np.ndarray], timings: dict[str, float]
+                     ) -> tuple[tuple[dict[str, Blob], dict[str, Features2D]] | None, str]:
+        start = time.perf_counter_ns()
+        candidates: dict[str, list[Blob]] = {}
+        for name in VIEWS:
+            self._log_bg[name] = log_background(images[name], self.settings.background_scale_px)
+            candidates[name] = segment(images[name], self._log_bg[name], None, self.settings)
+        timings["segmentation"] += (time.perf_counter_ns() - start) / 1e3
+        self._last_search = "full"
+        missing = [name for name in VIEWS if not candidates[name]]
+        if missing:
+            return None, f"no robot-like object in view {' and '.join(missing)}"
+        start = time.perf_counter_ns()
+        pick = pair_candidates(self.calibration, self.F,
+                               [b.centroid_px for b in candidates["p"]], [b.centroid_px for b in candidates["q"]],
+                               [b.strength for b in candidates["p"]], [b.strength for b in candidates["q"]],
+                               self.settings.epipolar_band_px)
+        timings["correspondence"] += (time.perf_counter_ns() - start) / 1e3
+        if pick is None:
+            return None, (f"no pair of candidates satisfies the epipolar constraint within "
+                          f"{self.settings.epipolar_band_px:g} px ({len(candidates['p'])} in p, "
+                          f"{len(candidates['q'])} in q)")
+        blobs = {"p": candidates["p"][pick[0]], "q": candidates["q"][pick[1]]}
+        start = time.perf_counter_ns()
+        feats = {name: self._features(blobs[name]) for name in VIEWS}
+        timings["features"] += (time.perf_counter_ns() - start) / 1e3
+        return (blobs, feats), ""
+
+    # ------------------------------------------------------------------------------------ results
+    def _posture(self, frame: int, t: float, rec: Reconstruction, blobs: dict[str, Blob]) -> Posture:
+        observations: dict[str, ViewObservation | None] = {}
+        for name in VIEWS:
+            feat = rec.view_features[name]
+            tips = rec.view_tips[name]
+            axis = tips[0] - tips[1]
+            norm = float(np.linalg.norm(axis))
+            axis = axis / norm if norm > 0 else feat.axis
+            observations[name] = ViewObservation(feat.centroid, tips, axis, blobs[name].pixel_count,
+                                                 feat.eigenvalues, 0 if rec.head_identified else None)
+        reason = "; ".join(rec.reasons) if rec.reasons else None
+        return Posture(frame=frame, t=t, ok=True, ambiguous=rec.ambiguous, centroid_mm=rec.centroid,
+                       direction=rec.direction, tips_mm=rec.tips, head_identified=rec.head_identified,
+                       length_mm=rec.length_mm, reprojection_px=rec.reprojection_px, views=observations,
+                       reason=reason, direction_candidates=rec.candidates,
+                       pairing_rms_px=(rec.pairing.rms_a_px, rec.pairing.rms_b_px),
+                       plane_angle_deg=rec.plane_angle_deg)
+
+    def _remember(self, posture: Posture) -> None:
+        assert posture.centroid_mm is not None
+        old = self._track
+        velocity = np.zeros(3)
+        if old is not None and old.lost_frames == 0 and posture.t > old.t:
+            velocity = (posture.centroid_mm - old.centroid) / (posture.t - old.t)
+        direction = posture.direction
+        if direction is None and old is not None:
+            direction = old.direction  # unresolved mirror ambiguity: keep the last known axis for the ROI
+        self._track = _Track(posture.t, posture.centroid_mm.copy(), direction,
+                             posture.length_mm if posture.length_mm is not None else (old.length_mm if old else None),
+                             velocity)
+
+    def _lose(self) -> None:
+        if self._track is None:
+            return
+        self._track.lost_frames += 1
+        self._track.velocity = np.zeros(3)
+        if self._track.lost_frames > self.settings.max_lost_frames:
+            self._track = None
