@@ -1,0 +1,138 @@
+"""``appliance calibrate``: calibrate both X-ray views from one image pair of a bead phantom.
+
+    appliance calibrate --phantom beads.csv --p p.tif --q q.tif --initial approx.yaml --out calibration.yaml
+
+Correspondence between blobs and phantom beads comes from ``--initial`` (a rough calibration file:
+nominal source distances and angles of the equipment; or ``--initial-mayacam P.txt Q.txt``) or, as in
+XMALab, from reference beads marked by hand: ``--ref-p ID:u,v`` (repeat it; 6 or more beads per view,
+or 4-5 with ``--focal-px``), where ID is the bead's id in the phantom file (its 1-based row when the
+file has no id column) and u,v the pixel of its centre (column, row; 0,0 the centre of the top-left
+pixel). Marked beads need not be the reference beads of an XMALab references file.
+
+Writes the calibration file (architecture.md contract, with RMS, inliers, date in ``metadata``), a
+report directory (per-bead residuals CSV, a PNG with detected beads and reprojections, a summary) and,
+with ``--mayacam DIR``, MayaCam 2.0 files for XMALab and Autoscoper.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+NAME = "calibrate"
+HELP = "calibrate the two X-ray views from images of a bead phantom (writes calibration.yaml and a report)"
+
+
+def _marked(text: str) -> tuple[str, tuple[float, float]]:
+    try:
+        bead, uv = text.split(":", 1)
+        u, v = (float(x) for x in uv.split(","))
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(f"expected ID:u,v (e.g. 12:403.5,220.0), got {text!r}") from err
+    if not bead.strip():
+        raise argparse.ArgumentTypeError(f"expected ID:u,v with a bead id before the colon, got {text!r}")
+    return bead.strip(), (u, v)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--phantom", required=True, type=Path, metavar="CSV",
+                        help="bead coordinates (mm): x,y,z or id,x,y,z per line, optional header; XMALab "
+                             "frame-specification CSV works as is")
+    parser.add_argument("--references", type=Path, metavar="FILE",
+                        help="XMALab references file (<id> <name> per line), listed in the report")
+    parser.add_argument("--p", required=True, type=Path, metavar="IMG", help="image of the phantom in plane p")
+    parser.add_argument("--q", required=True, type=Path, metavar="IMG", help="image of the phantom in plane q")
+    parser.add_argument("--initial", type=Path, metavar="YAML",
+                        help="rough calibration file used to match beads automatically")
+    parser.add_argument("--initial-mayacam", nargs=2, type=Path, metavar=("P_TXT", "Q_TXT"),
+                        help="rough calibration as two MayaCam 2.0 files instead of --initial")
+    parser.add_argument("--ref-p", action="append", type=_marked, default=[], metavar="ID:u,v",
+                        help="a marked bead in image p (repeat; >= 6, or >= 4 with --focal-px)")
+    parser.add_argument("--ref-q", action="append", type=_marked, default=[], metavar="ID:u,v",
+                        help="a marked bead in image q (repeat)")
+    parser.add_argument("--focal-px", type=float, metavar="F", help="focal length guess (px) for 4-5 marked beads")
+    parser.add_argument("--out", type=Path, default=Path("calibration.yaml"), metavar="YAML",
+                        help="calibration file to write (default: ./calibration.yaml)")
+    parser.add_argument("--report-dir", type=Path, metavar="DIR",
+                        help="where the report goes (default: <out without .yaml>_report/)")
+    parser.add_argument("--mayacam", type=Path, metavar="DIR", help="also export MayaCam 2.0 files to DIR")
+    parser.add_argument("--distortion", default="none", choices=("none", "k1", "k1k2", "k1k2p", "full"),
+                        help="OpenCV distortion terms to estimate (default none: a flat-panel detector)")
+    parser.add_argument("--square-pixels", action="store_true", help="force fx = fy")
+    parser.add_argument("--bead-tolerance", type=float, default=0.0, metavar="MM",
+                        help="jointly refine both views and the beads within this tolerance (default 0: beads exact)")
+    parser.add_argument("--max-bead-radius-px", type=float, default=15.0, metavar="PX",
+                        help="largest bead radius in the images (default 15)")
+
+
+def read_image(path: Path) -> Any:
+    """A 2D grey image from PNG/TIFF (any bit depth) or DICOM (first frame)."""
+    import cv2
+    import numpy as np
+
+    from appliance.errors import InputDataError
+
+    if not path.is_file():
+        raise InputDataError(f"{path}: image file not found")
+    suffix = path.suffix.lower()
+    try:
+        if suffix in (".dcm", ".dicom"):
+            import pydicom
+            pixels = pydicom.dcmread(str(path)).pixel_array
+        elif suffix in (".tif", ".tiff"):
+            import tifffile
+            pixels = tifffile.imread(str(path))
+        else:
+            pixels = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    except Exception as err:  # noqa: BLE001 -- any decoder failure is a bad input file; say which
+        raise InputDataError(f"{path}: cannot decode image ({err})") from err
+    if pixels is None:
+        raise InputDataError(f"{path}: not an image this program can read (PNG, TIFF or DICOM)")
+    pixels = np.asarray(pixels)
+    if pixels.ndim == 3 and pixels.shape[-1] not in (3, 4):
+        pixels = pixels[0]  # a multi-frame file: the first frame
+    if pixels.ndim == 3:
+        pixels = pixels[..., :3].mean(axis=2)
+    return pixels
+
+
+def run(args: argparse.Namespace) -> int:
+    from appliance.errors import InputDataError
+    from appliance.geometry import Calibration
+    from appliance.xray_calibration.cube import CubeOptions, calibrate_cube, to_calibration
+    from appliance.xray_calibration.mayacam import export_calibration, import_calibration
+    from appliance.xray_calibration.phantom import load_phantom
+    from appliance.xray_calibration.report import summary_text, write_report
+
+    def say(message: str) -> None:
+        print(f"calibrate: {message}", file=sys.stderr, flush=True)
+
+    if args.initial and args.initial_mayacam:
+        raise InputDataError("give --initial or --initial-mayacam, not both")
+    phantom = load_phantom(args.phantom, args.references)
+    images = {"p": read_image(args.p), "q": read_image(args.q)}
+    initial = None
+    if args.initial:
+        initial = Calibration.load(args.initial)
+    elif args.initial_mayacam:
+        initial = import_calibration(*args.initial_mayacam)
+    references = {"p": dict(args.ref_p), "q": dict(args.ref_q)}
+    options = CubeOptions(distortion=args.distortion, square_pixels=args.square_pixels,
+                          max_radius_px=args.max_bead_radius_px, bead_tolerance_mm=args.bead_tolerance,
+                          focal_guess_px=args.focal_px)
+    result = calibrate_cube(images, phantom, initial=initial, references=references, options=options, progress=say)
+    extra = {"images": {"p": str(args.p), "q": str(args.q)}}
+    if phantom.references:
+        extra["phantom_references"] = dict(phantom.references)
+    calibration = to_calibration(result, extra)
+    out = calibration.save(args.out)
+    report_dir = args.report_dir or out.with_name(out.stem + "_report")
+    paths = write_report(report_dir, images, result)
+    print(summary_text(result))
+    print(f"calibration written to {out}")
+    print(f"report: {paths['png']}, {paths['csv']}")
+    if args.mayacam:
+        mayacam = export_calibration(calibration, args.mayacam)
+        print(f"MayaCam 2.0: {mayacam['p']}, {mayacam['q']}")
+    return 0
