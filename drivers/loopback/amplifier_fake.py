@@ -63,7 +63,8 @@ from firmware_protocol.amplifier import (
 
 log = logging.getLogger(__name__)
 
-_SUBSTEP_S = 0.0005          # integration step: well below the default 10 ms coil time constant
+_SUBSTEP_S = 0.0005          # step while the reference ramps: well below the default 10 ms coil tau
+_STEADY_STEP_S = 0.005       # step otherwise: the coil is integrated exactly, temperature by Euler
 _MAX_ADVANCE_S = 600.0       # a clock jump beyond this is integrated as this much (keeps ticks bounded)
 _OVER_CURRENT_FACTOR = 1.1
 _OVER_CURRENT_MARGIN_A = 0.1
@@ -95,8 +96,9 @@ class FakeAmplifierConfig:
             raise ValueError(f"channels={self.channels}: the protocol carries 1..16")
         if not 0 < self.max_current_a <= self.rated_current_a:
             raise ValueError("need 0 < max_current_a <= rated_current_a")
-        if self.slew_a_per_s <= 0 or self.coil_resistance_ohm <= 0 or self.coil_inductance_h <= 0:
-            raise ValueError("slew, resistance and inductance must be positive")
+        if min(self.slew_a_per_s, self.coil_resistance_ohm, self.coil_inductance_h,
+               self.thermal_resistance_k_per_w, self.thermal_time_constant_s) <= 0:
+            raise ValueError("slew, resistance, inductance and thermal constants must be positive")
         if not _WATCHDOG_MIN_MS <= self.watchdog_ms <= _WATCHDOG_MAX_MS:
             raise ValueError(f"watchdog_ms must be in {_WATCHDOG_MIN_MS}..{_WATCHDOG_MAX_MS}")
         if not self.restart_temperature_c < self.over_temperature_c:
@@ -125,6 +127,7 @@ class FakeAmplifierState:
     state: State
     faults: Fault
     estop_input: bool
+    output_on: bool            # output stage driving the coils (off: currents decay with L/R)
     target_a: np.ndarray
     setpoint_a: np.ndarray
     measured_a: np.ndarray
@@ -200,7 +203,8 @@ class FakeAmplifier:
         with self._lock:
             return FakeAmplifierState(
                 t=self._now, state=self._state, faults=self._faults(), estop_input=self._estop_input,
-                target_a=self._target.copy(), setpoint_a=self._setpoint.copy(), measured_a=self._actual.copy(),
+                output_on=self._driving, target_a=self._target.copy(), setpoint_a=self._setpoint.copy(),
+                measured_a=self._actual.copy(),
                 temperature_c=self._temperature.copy(), max_current_a=self._max_ma / 1000.0,
                 slew_a_per_s=self._slew_ma_per_s / 1000.0, watchdog_ms=self._watchdog_ms)
 
@@ -400,7 +404,14 @@ class FakeAmplifier:
             return
         t = self._now
         while remaining > 1e-12:
-            h = min(_SUBSTEP_S, remaining)
+            ramping = self._driving and not np.array_equal(self._setpoint, self._target)
+            # Short steps while the reference ramps; otherwise the coil response is integrated exactly
+            # and only the (slow) temperature needs the step to be short against its time constant.
+            h = _SUBSTEP_S if ramping else _STEADY_STEP_S
+            if self._state is State.ENABLED:
+                # Land just past the watchdog deadline so the trip happens at the right moment.
+                h = min(h, max(self._last_valid + self._watchdog_ms / 1000.0 - t, 0.0) + 1e-6)
+            h = min(h, remaining)
             t += h
             remaining -= h
             self._now = t
@@ -420,10 +431,15 @@ class FakeAmplifier:
                 self._setpoint = self._setpoint + delta * (h / needed_s)
             if self._state is State.FAULT and not np.any(self._setpoint):
                 self._driving = False   # controlled ramp finished: output stage off
-        decay = math.exp(-h / cfg.coil_time_constant_s)
-        follow = self._setpoint if self._driving else 0.0
-        self._actual = follow + (self._actual - follow) * decay
-        heating_w = self._actual ** 2 * cfg.coil_resistance_ohm
+        tau = cfg.coil_time_constant_s
+        decay = math.exp(-h / tau)
+        follow = self._setpoint if self._driving else np.zeros_like(self._actual)
+        offset = self._actual - follow
+        self._actual = follow + offset * decay
+        # Mean of I^2 over the step for i(t) = follow + offset * exp(-t / tau), exactly.
+        mean_i2 = (follow ** 2 + 2.0 * follow * offset * (tau / h) * (1.0 - decay)
+                   + offset ** 2 * (tau / (2.0 * h)) * (1.0 - decay * decay))
+        heating_w = mean_i2 * cfg.coil_resistance_ohm
         cooling_w = (self._temperature - cfg.ambient_temperature_c) / cfg.thermal_resistance_k_per_w
         capacity_j_per_k = cfg.thermal_time_constant_s / cfg.thermal_resistance_k_per_w
         self._temperature = self._temperature + (heating_w - cooling_w) * h / capacity_j_per_k
