@@ -217,3 +217,14 @@ def test_compare_scores_against_the_truth() -> None:
     assert result["tips_mm"][0] == pytest.approx(0.0)
     wrong = dict(flipped, direction=[0.0, 1.0, 0.0])
     assert compare([wrong], [true])["silent"] == [0]
+
+
+def test_progress_only_on_a_terminal(rendered: tuple[Path, list[dict[str, object]]],
+                                     capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    import sys
+
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True)
+    code, out, err = _run(capsys, str(rendered[0]))
+    assert code == 0 and len(out.splitlines()) == 4
+    assert "\rtrack: frame 13 (4/4)" in err and "tracked 4 frame pairs" in err
+    assert "track:" not in out  # the records stay clean
