@@ -219,7 +219,9 @@ def run(args: argparse.Namespace) -> int:
 
     from appliance.commands.track import load_inputs, track_folder
     from appliance.recognition import PostureTracker
+    from appliance.robots import load_robots, select_robot
 
+    select_robot(load_robots(), args.robot)  # a bad --robot fails before any folder is made
     out = _prepare_folder(args.out)
     started = time.monotonic()
     scene = render_scene(out, args.robot, args.frames, args.seed, args.vessel_radius)
@@ -228,10 +230,7 @@ def run(args: argparse.Namespace) -> int:
     tracker = PostureTracker(calibration)
     with (out / "postures.jsonl").open("w", encoding="utf-8") as stream:
         track_folder(frames, tracker, stream, fps=30.0)
-    tracked = time.monotonic()
-    _progress("")
-    if sys.stderr.isatty():
-        sys.stderr.write("\r")
+    tracked = time.monotonic()  # (track_folder ended the progress line)
     records = [json.loads(line) for line in (out / "postures.jsonl").read_text(encoding="utf-8").splitlines()]
     result = compare(records, scene.truth)
     print(_summary(out, scene, result, {"render": rendered - started, "track": tracked - rendered}))
