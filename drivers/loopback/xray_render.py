@@ -47,6 +47,7 @@ log = logging.getLogger(__name__)
 # Below this many expected photons the Gaussian approximation of Poisson noise is visibly skewed.
 _POISSON_EXACT_BELOW = 30.0
 _ROWS_PER_CHUNK = 128
+_NOISE_BANK_FRAMES = 8
 _BBOX_PAD_PX = 2
 
 Bbox = tuple[int, int, int, int]  # x0, y0, x1, y1 (exclusive)
@@ -69,6 +70,7 @@ class ImagingSettings:
     dark_level: int = 1000
     max_value: int = 65535
     full_scale_fraction: float = 0.8
+    fresh_noise: bool = False        # draw new normals every frame instead of windows of a bank
 
     def __post_init__(self) -> None:
         if not (self.photons_per_pixel > 0 and 0 <= self.field_nonuniformity < 1
@@ -126,8 +128,10 @@ class _ViewState:
             u, v = np.meshgrid(np.arange(self.w, dtype=float), np.arange(self.h, dtype=float))
             xy = view.undistort_normalized(np.stack([u.ravel(), v.ravel()], axis=1))
             self.maps = (xy[:, 0].reshape(self.h, self.w), xy[:, 1].reshape(self.h, self.w))
-        self.bg_counts = np.zeros((self.h, self.w), np.float32)
+        self.bg_counts = np.zeros((self.h, self.w), np.float32)   # expected photons, no robot
         self.bg_min = 0.0
+        self.bg_dn = self.bg_counts                               # the same in gray levels
+        self.bg_sd_dn = self.bg_counts                            # its quantum noise, gray levels
 
     def normalized_block(self, x0: int, y0: int, x1: int, y1: int) -> tuple[np.ndarray, np.ndarray]:
         """Ideal normalized coordinates of the pixel centres of a block (broadcastable arrays)."""
@@ -254,6 +258,14 @@ class BiplaneRenderer:
         s = settings
         # One gain for both planes so their gray levels are comparable, as with one generator.
         self.gain = s.full_scale_fraction * (s.max_value - s.dark_level) / flat_max
+        for state in self._states.values():
+            state.bg_dn = (s.dark_level + 0.5 + self.gain * state.bg_counts).astype(np.float32)
+            state.bg_sd_dn = (self.gain * np.sqrt(state.bg_counts)).astype(np.float32)
+        self._bank: np.ndarray | None = None
+        if s.noise and not s.fresh_noise:
+            pixels = max(state.h * state.w for state in self._states.values())
+            self._bank = self._rng.standard_normal(_NOISE_BANK_FRAMES * pixels, dtype=np.float32)
+            self._bank.setflags(write=False)
 
     # ------------------------------------------------------------------------------ static
     def _flat_field(self, state: _ViewState) -> np.ndarray:
@@ -299,16 +311,10 @@ class BiplaneRenderer:
         images: dict[str, np.ndarray] = {}
         truth: dict[str, ViewTruth] = {}
         for name, state in self._states.items():
-            counts = state.bg_counts.copy()
-            low = state.bg_min < _POISSON_EXACT_BELOW
+            patch = None
             if pose is not None:
                 truth[name], patch = self._robot_in_view(state, pose)
-                if patch is not None:
-                    (x0, y0, x1, y1), transmission = patch
-                    block = counts[y0:y1, x0:x1]
-                    block *= transmission
-                    low = low or float(block.min()) < _POISSON_EXACT_BELOW
-            images[name] = self._expose(counts, low)
+            images[name] = self._expose(state, patch)
         head = tail = None
         if pose is not None and self.body is not None:
             head, tail = pose.head_mm(self.body), pose.tail_mm(self.body)
@@ -343,25 +349,57 @@ class BiplaneRenderer:
                           area_px=float(coverage.sum()))
         return truth, (bbox, transmission.astype(np.float32))
 
-    def _expose(self, counts: np.ndarray, low_counts: bool) -> np.ndarray:
-        """Expected photon counts (float32, modified in place) -> noisy, blurred 16-bit image."""
+    def _expose(self, state: _ViewState, patch: tuple[Bbox, np.ndarray] | None) -> np.ndarray:
+        """Expected counts (static background times the robot's transmission patch) -> noisy,
+        blurred 16-bit image. Works in gray levels: the offset and gain are linear, so they commute
+        with the blur, and the background's mean and noise scale are precomputed in gray levels."""
         s = self.settings
-        image = counts
-        if s.noise:
-            noise = self._rng.standard_normal(counts.shape, dtype=np.float32)
-            noise *= np.sqrt(counts)
-            if low_counts:
-                idx = np.flatnonzero(counts < _POISSON_EXACT_BELOW)
-                flat = noise.reshape(-1)
-                lam = counts.reshape(-1)[idx]
-                flat[idx] = self._rng.poisson(lam).astype(np.float32) - lam
-            image = counts + noise
+        offset = np.float32(s.dark_level + 0.5)    # + 0.5: round to nearest on the final cast
+        gain = np.float32(self.gain)
+        block = counts = None
+        if patch is not None:
+            (x0, y0, x1, y1), transmission = patch
+            block = np.s_[y0:y1, x0:x1]
+            counts = state.bg_counts[block] * transmission
+        low = state.bg_min < _POISSON_EXACT_BELOW or (
+            counts is not None and counts.size > 0 and float(counts.min()) < _POISSON_EXACT_BELOW)
+        if not s.noise:
+            image = state.bg_dn.copy()
+            if block is not None:
+                image[block] = offset + gain * counts
+        elif low:
+            image = self._exact_poisson(state, block, counts) * gain + offset
+        else:
+            z = self._unit_normals(state.h, state.w)
+            image = z * state.bg_sd_dn
+            image += state.bg_dn
+            if block is not None:
+                image[block] = offset + gain * (counts + np.sqrt(counts) * z[block])
         if s.blur_sigma_px > 0:
             image = cv2.GaussianBlur(image, (0, 0), s.blur_sigma_px, borderType=cv2.BORDER_REFLECT)
-        image *= np.float32(self.gain)
-        image += np.float32(s.dark_level + 0.5)   # + 0.5: round to nearest on the cast
         np.clip(image, 0, s.max_value, out=image)
         return image.astype(np.uint16)
+
+    def _unit_normals(self, h: int, w: int) -> np.ndarray:
+        """Standard normal noise for one frame: a window at a random offset into a pre-drawn bank
+        (or fresh draws with ``fresh_noise``). Drawing ~0.5 M normals costs several ms; a window
+        costs nothing. A window's pixels are independent; two frames share samples only shifted
+        by their offsets' difference, so no pixel repeats its own noise."""
+        if self._bank is None:
+            return self._rng.standard_normal((h, w), dtype=np.float32)
+        start = int(self._rng.integers(0, self._bank.size - h * w + 1))
+        return self._bank[start:start + h * w].reshape(h, w)
+
+    def _exact_poisson(self, state: _ViewState, block: tuple[slice, slice] | None,
+                       counts: np.ndarray | None) -> np.ndarray:
+        """Photon counts with Poisson noise drawn exactly where the mean is low (slow path)."""
+        lam = state.bg_counts.copy()
+        if block is not None:
+            lam[block] = counts
+        noisy = lam + np.sqrt(lam) * self._rng.standard_normal(lam.shape, dtype=np.float32)
+        low = lam < _POISSON_EXACT_BELOW
+        noisy[low] = self._rng.poisson(lam[low]).astype(np.float32)
+        return noisy
 
     # ------------------------------------------------------------------------------ helpers
     def to_photons(self, image: np.ndarray) -> np.ndarray:
