@@ -8,6 +8,8 @@ from typing import Any, Callable
 import cv2
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from appliance.errors import CalibrationError
 from appliance.geometry import (
@@ -152,6 +154,22 @@ def test_triangulation_round_trip(distorted: bool, points: np.ndarray) -> None:
         X = triangulate(cal.p, cal.q, up, uq, optimal=optimal)
         np.testing.assert_allclose(X, points, atol=1e-6)
         assert reprojection_error_px(cal.p, cal.q, X, up, uq).max() < 1e-6
+
+
+@settings(max_examples=60, deadline=None)
+@given(azimuth=st.floats(20.0, 160.0), elevation=st.floats(-30.0, 30.0), sod=st.floats(300.0, 900.0),
+       focal=st.floats(500.0, 4000.0), k1=st.floats(-0.2, 0.2), seed=st.integers(0, 2**16))
+def test_round_trip_over_random_biplane_geometries(azimuth: float, elevation: float, sod: float, focal: float,
+                                                   k1: float, seed: int) -> None:
+    a, e = np.radians(azimuth), np.radians(elevation)
+    p = View.look_at("p", (-sod, 0.0, 0.0), (0, 0, 0), focal_px=focal, image_size=SIZE, dist=(k1, 0, 0, 0, 0))
+    q = View.look_at("q", (-sod * np.cos(a) * np.cos(e), -sod * np.sin(a) * np.cos(e), sod * np.sin(e)), (0, 0, 0),
+                     focal_px=focal * 1.3, image_size=SIZE, dist=(-k1 / 2, 0, 0, 0, 0))
+    cal = Calibration.from_views(p, q)
+    X = np.random.default_rng(seed).uniform(-20.0, 20.0, (20, 3))
+    up, uq = cal.p.project(X), cal.q.project(X)
+    assert epipolar_distance_px(cal.F, cal.p.undistort_points(up), cal.q.undistort_points(uq)).max() < 1e-5
+    np.testing.assert_allclose(triangulate(cal.p, cal.q, up, uq), X, atol=1e-5)
 
 
 def test_triangulation_matches_opencv(points: np.ndarray) -> None:
