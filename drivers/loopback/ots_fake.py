@@ -200,7 +200,7 @@ class NdiTrackerFake:
     def __init__(self, provider: PoseProvider, *, noise: NoiseModel = NoiseModel(),
                  volume: BoxVolume = BoxVolume(), firmware: FirmwareIdentity = FirmwareIdentity(),
                  first_handle: int = 0x01, max_handles: int = 9) -> None:
-        self.provider = provider
+        self._provider = provider
         self.noise = noise
         self.volume = volume
         self.firmware = firmware
@@ -210,6 +210,16 @@ class NdiTrackerFake:
         self._lines = LineSplitter(max_line=1024)
         self.commands: list[Command] = []     # every command understood, for tests and diagnostics
         self._power_on()
+
+    @property
+    def provider(self) -> PoseProvider:
+        return self._provider
+
+    @provider.setter
+    def provider(self, provider: PoseProvider) -> None:
+        """Swap the pose source (hold the server's lock); the current frame is measured again."""
+        self._provider = provider
+        self._cached = None
 
     def _power_on(self) -> None:
         self.initialised = False
@@ -259,6 +269,8 @@ class NdiTrackerFake:
         handler = getattr(self, f"_cmd_{command.name.lower()}", None)
         if handler is None:
             return encode_error(E.INVALID_COMMAND)
+        if command.name not in ("TX", "BX"):
+            self._cached = None     # handles may change: measure the current frame again
         try:
             reply = handler(command.params, now)
         except _Refused as refusal:
@@ -437,7 +449,7 @@ class NdiTrackerFake:
 
     def _measure(self, frame: int, now: float) -> dict[int, ToolRecord]:
         """One frame's noisy measurement of every enabled tool the provider places (out-of-volume flagged)."""
-        poses = self.provider(now)
+        poses = self._provider(now)
         measured: dict[int, ToolRecord] = {}
         for port in self.ports.values():
             pose = poses.get(port.tool_index) if port.enabled else None
