@@ -55,8 +55,9 @@ def attenuation_image(image: np.ndarray, max_radius_px: float, *, bright: bool =
     span = float(raw.max() - raw.min())
     if span <= 0:
         raise CalibrationError(f"{what}: the image is uniform (no beads can be found)")
-    # Offset keeps log finite for zero pixels without changing contrast of exposed regions.
-    level = raw - raw.min() + max(1.0, 1e-3 * span)
+    # Raw detector values (not shifted to their minimum: the darkest pixel would then sit near log 0 and
+    # dominate); the small offset only keeps log finite at zero.
+    level = np.maximum(raw, 0.0) + max(1.0, 1e-3 * span)
     size = 2 * int(np.ceil(max_radius_px)) + 3
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
     # The closing of a noisy image rides on the noise peaks: close a smoothed copy, smooth the result,
@@ -64,17 +65,25 @@ def attenuation_image(image: np.ndarray, max_radius_px: float, *, bright: bool =
     log_level = np.log(level)
     smoothed = cv2.GaussianBlur(log_level, (0, 0), 1.5)
     operation = cv2.MORPH_OPEN if bright else cv2.MORPH_CLOSE
-    background = cv2.GaussianBlur(cv2.morphologyEx(smoothed, operation, kernel), (0, 0), size / 4.0)
+    # Pad by replication ourselves: OpenCV's morphology treats the outside as neutral whatever the border
+    # mode, so a closing next to the edge of an intensity ramp would take the ramp's far value.
+    padded = cv2.copyMakeBorder(smoothed, size, size, size, size, cv2.BORDER_REPLICATE)
+    closed = cv2.morphologyEx(padded, operation, kernel)[size:-size, size:-size]
+    background = cv2.GaussianBlur(closed, (0, 0), size / 4.0)
     signal = (log_level - background) if bright else (background - log_level)
     signal -= np.median(signal)
     return signal.astype(np.float32)
 
 
 def _noise_sigma(signal: np.ndarray) -> float:
-    """Robust noise level: median absolute deviation of the pixel-to-pixel difference."""
-    diff = np.diff(signal[::2, :], axis=1).ravel()
-    mad = float(np.median(np.abs(diff - np.median(diff))))
-    return max(1.4826 * mad / np.sqrt(2.0), 1e-6)
+    """Robust noise level of a (mostly empty) signal image: scaled median absolute deviation.
+
+    Taken on the values, not on pixel differences: a detector's light spread correlates neighbouring
+    pixels, which makes differences understate the noise a blob detector sees.
+    """
+    values = signal[::2, ::2].ravel()
+    mad = float(np.median(np.abs(values - np.median(values))))
+    return max(1.4826 * mad, 1e-6)
 
 
 def detect_beads(image: np.ndarray, *, min_radius_px: float = 1.5, max_radius_px: float = 15.0,

@@ -20,7 +20,6 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.sparse import lil_matrix
 
 from appliance.errors import CalibrationError
 
@@ -187,20 +186,34 @@ def refine_jointly(fits: dict[str, ViewFit], points_mm: np.ndarray, *, bead_tole
             parts.append(params[bead_base:] / bead_tolerance_mm)
         return np.concatenate(parts)
 
-    n_res = sum(2 * len(fits[n].bead_rows) for n in names) + (3 * len(seen) if move_beads else 0)
-    sparsity = lil_matrix((n_res, len(x0)), dtype=np.uint8)
-    r = 0
-    for k, name in enumerate(names):
-        for row in fits[name].bead_rows:
-            sparsity[r:r + 2, offsets[k]:offsets[k + 1]] = 1
+    def jacobian(params: np.ndarray) -> np.ndarray:
+        # OpenCV's projectPoints gives d(uv)/d(rvec, tvec, fx, fy, cx, cy, dist); d(uv)/dX = d(uv)/dt R.
+        X = beads_of(params)
+        J = np.zeros((n_res, len(params)))
+        r = 0
+        for k, name in enumerate(names):
+            K, dist, rvec, tvec = _unpack(params[offsets[k]:offsets[k + 1]], free_dist, square_pixels)
+            fit = fits[name]
+            _, jac = cv2.projectPoints(X[fit.bead_rows].reshape(-1, 1, 3), rvec, tvec, K, dist)
+            jac = jac / detection_sigma_px
+            n = 2 * len(fit.bead_rows)
+            focal = [jac[:, 6] + jac[:, 7]] if square_pixels else [jac[:, 6], jac[:, 7]]
+            block = np.column_stack(focal + [jac[:, 8], jac[:, 9], jac[:, 0:3], jac[:, 3:6]]
+                                    + [jac[:, 10 + i] for i in free_dist])
+            J[r:r + n, offsets[k]:offsets[k + 1]] = block
             if move_beads:
-                c = bead_base + 3 * slot[int(row)]
-                sparsity[r:r + 2, c:c + 3] = 1
-            r += 2
-    if move_beads:
-        for j in range(3 * len(seen)):
-            sparsity[r + j, bead_base + j] = 1
-    solution = least_squares(residuals, x0, jac_sparsity=sparsity, method="trf", x_scale="jac",
+                R, _ = cv2.Rodrigues(rvec)
+                d_point = jac[:, 3:6] @ R
+                for m, row in enumerate(fit.bead_rows):
+                    c = bead_base + 3 * slot[int(row)]
+                    J[r + 2 * m:r + 2 * m + 2, c:c + 3] = d_point[2 * m:2 * m + 2]
+            r += n
+        if move_beads:
+            J[r:, bead_base:] = np.eye(3 * len(seen)) / bead_tolerance_mm
+        return J
+
+    n_res = sum(2 * len(fits[n].bead_rows) for n in names) + (3 * len(seen) if move_beads else 0)
+    solution = least_squares(residuals, x0, jac=jacobian, method="lm", x_scale="jac",
                              xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200)
     X = beads_of(solution.x)
     refined: dict[str, ViewFit] = {}
