@@ -117,8 +117,12 @@ def parse_mayacam(text: str, name: str, source: str = "MayaCam file") -> View:
         raise CalibrationError(f"{source}: camera matrix is not [[fx,s,cx],[0,fy,cy],[0,0,1]] with fx, fy > 0")
     if abs(np.linalg.det(R) - 1) > 1e-4 or np.max(np.abs(R.T @ R - np.eye(3))) > 1e-4:
         raise CalibrationError(f"{source}: rotation is not a rotation matrix (det {np.linalg.det(R):.4f})")
-    u, _, vt = np.linalg.svd(R)
-    return View(name, K, dist, u @ vt, t, (int(w), int(h)))
+    if np.max(np.abs(R.T @ R - np.eye(3))) > 1e-12:
+        # Files written with a few digits: project onto the nearest rotation. One exact to rounding is
+        # kept bit for bit, so that a write/read round trip gives the same view.
+        u, _, vt = np.linalg.svd(R)
+        R = u @ vt
+    return View(name, K, dist, R, t, (int(w), int(h)))
 
 
 def write_mayacam(path: str | Path, view: View) -> Path:
