@@ -6,17 +6,24 @@ every 0.25 mm. Each frame the follower:
 
 1. finds the nearest path point, searching a window around the previous one so a path that comes
    back near itself is not short-cut;
-2. commands a velocity: cruise speed along the tangent (slowing down over the last
-   ``slow_down_mm``), minus a proportional-integral correction of the cross-track error (the
-   integral rejects steady force errors, such as the coil model's mismatch with the real coils);
+2. moves a target point (the "carrot") along the path at the cruise speed (slowing down over the
+   last ``slow_down_mm``, never more than ``max_lead_mm`` ahead of the robot) and commands a
+   velocity: the cruise speed along the carrot's tangent minus a proportional-integral correction
+   of the robot's offset from the carrot (cross-track and along-track; the integral rejects steady
+   force errors, such as the coil model's mismatch with the real coils);
 3. limits the speed and the change of commanded velocity per second (rate limit);
 4. converts velocity to force with the configured drag of the robot (overdamped motion: F = xi v,
    axial and lateral drags about the tracked axis);
 5. asks for a field of ``field_t`` along the tangent ``lookahead_mm`` ahead, turning at most
    ``max_turn_deg_s``.
 
-The follower is a pure function of what the appliance knows (posture, time, path); it never sees
-the simulated truth.
+The robot's axis follows the field within microseconds (see the world's rotational drag), so the
+best estimate of the moment's direction for the allocator is the commanded field direction, not a
+noisy tracked axis: a 1 degree axis error times the aligning field's own gradient (~20 mT/m) is a
+force error of ~10 uN, twice the push. ``Command.moment_direction`` gives it.
+
+The follower only uses what the appliance knows (posture, time, path); it never sees the
+simulated truth.
 """
 from __future__ import annotations
 
@@ -49,6 +56,7 @@ class FollowerSettings(StrictModel):
     max_accel_mm_s2: float = Field(default=40.0, gt=0.0)
     max_turn_deg_s: float = Field(default=180.0, gt=0.0)
     lookahead_mm: float = Field(default=1.0, ge=0.0)
+    max_lead_mm: float = Field(default=2.0, gt=0.0)
     slow_down_mm: float = Field(default=4.0, ge=0.0)
     goal_tolerance_mm: float = Field(default=0.5, gt=0.0)
     drag_axial_n_s_per_m: float = Field(default=1.1e-3, gt=0.0)
@@ -73,6 +81,11 @@ class Command:
     velocity_mm_s: FloatArray  # commanded velocity (before conversion to force)
     s_mm: float                # arc length of the nearest path point
     target_mm: FloatArray      # nearest path point
+
+    @property
+    def moment_direction(self) -> FloatArray:
+        """Unit direction to use for the robot's moment in allocation (the commanded field's)."""
+        return self.field_T / np.linalg.norm(self.field_T)
 
 
 def smooth_path(waypoints_mm: ArrayLike, spacing_mm: float = _SPACING_MM) -> tuple[FloatArray, FloatArray]:
@@ -146,6 +159,7 @@ class PathFollower:
         self._t_last: float | None = None
         self._integral = np.zeros(3)
         self._velocity = np.zeros(3)
+        self._carrot_s: float | None = None
         self._field_dir: FloatArray | None = None
 
     def tangent_at(self, s_mm: float) -> FloatArray:
@@ -176,29 +190,32 @@ class PathFollower:
         axis = axis / np.linalg.norm(axis)
         dt = 0.0 if self._t_last is None else float(np.clip(t_s - self._t_last, 0.0, 0.2))
         self._t_last = t_s
-        s, target = self.nearest(p)
+        s, nearest = self.nearest(p)
         self._s_hint = s
         tangent = self.tangent_at(s)
-        error = p - target
-        error -= np.dot(error, tangent) * tangent
-        cross_track = float(np.linalg.norm(error))
-        remaining = self.length_mm - s
-        done = remaining <= cfg.goal_tolerance_mm
+        offset = p - nearest
+        cross_track = float(np.linalg.norm(offset - np.dot(offset, tangent) * tangent))
+        done = self.length_mm - s <= cfg.goal_tolerance_mm
 
+        # The carrot: a target point moving along the path at the cruise speed, never more than
+        # max_lead_mm ahead of the robot (so it waits when the robot is held back).
+        if self._carrot_s is None:
+            self._carrot_s = s
+        cruise = self._cruise(self._carrot_s)
+        self._carrot_s = min(self._carrot_s + cruise * dt, s + cfg.max_lead_mm, self.length_mm)
+        carrot_tangent = self.tangent_at(self._carrot_s)
+        error = p - self.point_at(self._carrot_s)
         if done:
             wanted = np.zeros(3)
             self._integral[:] = 0.0
         else:
-            cruise = cfg.speed_mm_s * min(1.0, max(remaining / cfg.slow_down_mm, 0.15)) if cfg.slow_down_mm else cfg.speed_mm_s
             self._integral += error * dt
-            # Anti-windup: the integral's velocity contribution is bounded.
-            if cfg.cross_track_integral_per_s2 > 0.0:
+            if cfg.cross_track_integral_per_s2 > 0.0:   # anti-windup: bounded integral velocity
                 bound = cfg.integral_limit_mm_s / cfg.cross_track_integral_per_s2
                 norm = float(np.linalg.norm(self._integral))
                 if norm > bound:
                     self._integral *= bound / norm
-            self._integral -= np.dot(self._integral, tangent) * tangent
-            wanted = (cruise * tangent - cfg.cross_track_gain_per_s * error
+            wanted = (self._cruise(self._carrot_s) * carrot_tangent - cfg.cross_track_gain_per_s * error
                       - cfg.cross_track_integral_per_s2 * self._integral)
         speed = float(np.linalg.norm(wanted))
         if speed > cfg.max_speed_mm_s:
@@ -218,7 +235,19 @@ class PathFollower:
             self._field_dir, ahead, math.radians(cfg.max_turn_deg_s) * dt)
         progress = float(np.clip(s / self.length_mm, 0.0, 1.0))
         return Command(cfg.field_t * self._field_dir, force, cross_track, progress, done,
-                       self._velocity.copy(), s, target)
+                       self._velocity.copy(), s, nearest)
+
+    def _cruise(self, s_mm: float) -> float:
+        """Cruise speed at arc length ``s_mm``: slows over the last ``slow_down_mm`` (to 15 %)."""
+        cfg = self.settings
+        if cfg.slow_down_mm <= 0.0:
+            return cfg.speed_mm_s
+        return cfg.speed_mm_s * min(1.0, max((self.length_mm - s_mm) / cfg.slow_down_mm, 0.15))
+
+    def point_at(self, s_mm: float) -> FloatArray:
+        """Path point at arc length ``s_mm`` (clamped to the ends)."""
+        s = float(np.clip(s_mm, 0.0, self.length_mm))
+        return np.array([np.interp(s, self.s, self.points[:, k]) for k in range(3)])
 
 
 def _turn_toward(current: FloatArray, goal: FloatArray, max_angle: float) -> FloatArray:
