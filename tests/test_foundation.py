@@ -72,3 +72,22 @@ def test_layers_point_one_way() -> None:
         pytest.skip("import-linter is not installed in this environment")
     result = subprocess.run([str(lint), "--no-cache"], cwd=ROOT, capture_output=True, text=True)
     assert result.returncode == 0, result.stdout + result.stderr
+
+
+def test_closed_pipe_ends_quietly() -> None:
+    """`appliance ... | head` ends with status 0 and no BrokenPipe traceback."""
+    program = (
+        "import sys, types\n"
+        "from appliance import cli\n"
+        "def run(args):\n"
+        "    for _ in range(20000):\n"
+        "        print('x' * 200)\n"
+        "    return 0\n"
+        "spam = types.SimpleNamespace(NAME='spam', HELP='h', add_arguments=lambda p: None, run=run)\n"
+        "cli._command_modules = lambda: [spam]\n"
+        "sys.exit(cli.main(['spam']))\n")
+    shell = f"{sys.executable} -c \"$PROGRAM\" | head -c 10 >/dev/null; echo \"status=${{PIPESTATUS[0]}}\""
+    result = subprocess.run(["bash", "-c", shell], cwd=ROOT, capture_output=True, text=True,
+                            env={"PROGRAM": program, "PATH": "/usr/bin:/bin"})
+    assert "Traceback" not in result.stderr, result.stderr
+    assert "status=0" in result.stdout
