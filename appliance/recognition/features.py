@@ -46,6 +46,8 @@ class Features2D:
     head_index: int | None = None
     ramp_px: tuple[float, float] | None = None
     reach: tuple[dict[float, float], dict[float, float]] | None = None
+    #: Standard deviation (radians) of the axis direction expected from the image noise; None if unknown.
+    axis_sigma_rad: float | None = None
 
     def tip_distance(self, end: int, conical: bool) -> float:
         """Outward distance (px) of end ``end`` (0: +axis, 1: -axis) from the centroid."""
@@ -63,7 +65,7 @@ class Features2D:
         tips = np.array([self.centroid + self.axis * self.tip_distance(0, head_index == 0),
                          self.centroid - self.axis * self.tip_distance(1, head_index == 1)])
         return Features2D(self.centroid, self.axis, self.eigenvalues, tips, self.pixel_count,
-                          head_index, self.ramp_px, self.reach)
+                          head_index, self.ramp_px, self.reach, self.axis_sigma_rad)
 
 
 def _eig2(s11: float, s22: float, s12: float) -> tuple[float, float, np.ndarray]:
@@ -128,6 +130,23 @@ def axial_profile(weights: np.ndarray, centroid: np.ndarray, axis: np.ndarray) -
     return profile, s0
 
 
+def axis_sigma_rad(weights: np.ndarray, centroid: np.ndarray, axis: np.ndarray, spread: float,
+                   pixel_sigma: float) -> float:
+    """Standard deviation of the principal axis' angle caused by pixel noise ``pixel_sigma``.
+
+    The axis turns by ``mu_st / (l1 - l2)`` for a mixed moment ``mu_st`` in the principal frame, which
+    noise of independent pixels makes ``pixel_sigma sqrt(sum s^2 t^2) / W``.
+    """
+    ys, xs = np.nonzero(weights)
+    dx, dy = xs - centroid[0], ys - centroid[1]
+    s = dx * axis[0] + dy * axis[1]
+    t = -dx * axis[1] + dy * axis[0]
+    total = float(weights.sum(dtype=np.float64))
+    if total <= 0 or spread <= 0:
+        return float("inf")
+    return float(pixel_sigma * np.sqrt(np.sum((s * t) ** 2)) / (total * spread))
+
+
 def _reach(profile: np.ndarray, s0: float, level: float, direction: int) -> float:
     """Outward distance from s = 0 where the profile last exceeds ``level`` on one side (sub-bin)."""
     above = np.flatnonzero(profile >= level)
@@ -149,7 +168,16 @@ def weighted_features(blob: Blob, settings: RecognitionSettings | None = None) -
     settings = settings or RecognitionSettings()
     local_c, s11, s22, s12, _ = weighted_moments(blob.weights)
     l1, l2, v = _eig2(s11, s22, s12)
+    if settings.axis_saturation < 1.0:
+        # Orientation from saturated weights: still symmetric about the projected axis, but the
+        # silhouette's edges weigh as much as its thick middle, which keeps short, cone-heavy bodies
+        # (whose mass sits in a round lump) from having an ill-defined principal axis.
+        cap = np.float32(settings.axis_saturation * blob.peak)
+        _, t11, t22, t12, _ = weighted_moments(np.minimum(blob.weights, cap))
+        _, _, axis = _eig2(t11, t22, t12)
+        v = axis if float(np.dot(axis, v)) >= 0 else -axis
     profile, s0 = axial_profile(blob.weights, local_c, v)
+    axis_sigma = axis_sigma_rad(blob.weights, local_c, v, l1 - l2, blob.sigma)
     plateau = float(profile.max())
     reach: list[dict[float, float]] = [{}, {}]
     for level in _LEVELS:
@@ -163,7 +191,7 @@ def weighted_features(blob: Blob, settings: RecognitionSettings | None = None) -
             head = end
     origin = np.array([blob.window.x0, blob.window.y0], dtype=np.float64)
     base = Features2D(local_c + origin, v, (l1, l2), np.zeros((2, 2)), blob.pixel_count, None,
-                      (float(ramps[0]), float(ramps[1])), (reach[0], reach[1]))
+                      (float(ramps[0]), float(ramps[1])), (reach[0], reach[1]), axis_sigma)
     return base.with_head(head)
 
 

@@ -82,6 +82,37 @@ def ray_line_parameters(view: View, pixels: np.ndarray, point: np.ndarray, direc
     return b, sin2
 
 
+def fuse_axis(calibration: Calibration, centroid: np.ndarray, feats: dict[str, Features2D], d_tips: np.ndarray,
+              settings: RecognitionSettings) -> np.ndarray:
+    """The 3D axis that best fits both views' axis planes and the triangulated tips, by their precision.
+
+    Each view says ``n . d = 0`` for its plane's normal ``n``, to within its 2D axis' angular noise times
+    the sine of the axis' angle to the view's ray (a plane turning about a ray the axis nearly lies on
+    hardly moves the axis); the tips say ``d ~ d_tips`` to within the tip noise over the length. The
+    unit ``d`` minimising the weighted squared residuals is the smallest eigenvector of their sum.
+    Far from an epipolar plane the planes dominate (the tips' rim biases do not reach the axis); in it,
+    only the tips can say where in the common plane the axis lies.
+    """
+    length = 0.0
+    M = np.zeros((3, 3))
+    for name, feat in feats.items():
+        view = calibration.views[name]
+        n = axis_plane(view, feat)[:3]
+        ray = _unit(centroid - view.source_mm)
+        sin_a = max(float(np.linalg.norm(np.cross(ray, d_tips))), 0.05)
+        sigma = math.hypot((feat.axis_sigma_rad if feat.axis_sigma_rad is not None else 0.01) * sin_a,
+                           settings.axis_floor_rad)
+        M += np.outer(n, n) / sigma ** 2
+        length = max(length, float(np.linalg.norm(feat.tips[0] - feat.tips[1])))
+    mm_per_px = float(np.linalg.norm(centroid - calibration.p.source_mm)) / float(calibration.p.K[0, 0])
+    sigma_tips = settings.tip_sigma_px * math.sqrt(2.0) / max(length, 1.0)
+    M += (np.eye(3) - np.outer(d_tips, d_tips)) / sigma_tips ** 2
+    del mm_per_px  # the tip noise is compared with the image length, so the scale cancels
+    _, vectors = np.linalg.eigh(M)
+    d = vectors[:, 0]
+    return d if float(np.dot(d, d_tips)) >= 0 else -d
+
+
 def _hypotheses(calibration: Calibration, feat_p: Features2D, feat_q: Features2D, optimal: bool
                 ) -> dict[str, np.ndarray]:
     """Triangulated tips (2,3) for cases A and B; row 0 comes from p's tip 0 (its +axis end)."""
@@ -123,15 +154,13 @@ def reconstruct(calibration: Calibration, F: np.ndarray, feat_p: Features2D, fea
     degenerate = paper or plane_angle < settings.min_plane_angle_deg
 
     if not degenerate:
-        d = _unit(cross)
+        d_planes = _unit(cross)
         # The planes fix the line; the case is the one whose tips run along it.
-        implied = min(hyps, key=lambda c: line_angle_deg(hyps[c][0] - hyps[c][1], d)
+        implied = min(hyps, key=lambda c: line_angle_deg(hyps[c][0] - hyps[c][1], d_planes)
                       if np.all(np.isfinite(hyps[c])) else 180.0)
         case = implied
         tips_dir = hyps[implied][0] - hyps[implied][1]
-        if np.all(np.isfinite(tips_dir)) and np.dot(tips_dir, d) < 0:
-            d = -d
-        disagreement = line_angle_deg(tips_dir, d) if np.all(np.isfinite(tips_dir)) else 90.0
+        disagreement = line_angle_deg(tips_dir, d_planes) if np.all(np.isfinite(tips_dir)) else 90.0
         if pairing.separated and implied != pairing.case:
             ambiguous = True
             reasons.append(f"the axis planes imply pairing {implied} but the tips' epipolar test says "
@@ -141,7 +170,7 @@ def reconstruct(calibration: Calibration, F: np.ndarray, feat_p: Features2D, fea
             reasons.append(f"the axis from the two views' planes and from the triangulated tips differ by "
                            f"{disagreement:.1f} deg")
     elif pairing.separated:
-        d = hyps[pairing.case][0] - hyps[pairing.case][1]
+        case = pairing.case
     else:
         ambiguous = True
         what = (f"pairings A and B fit equally well (RMS epipolar distance {pairing.rms_a_px:.1f} vs "
@@ -154,7 +183,10 @@ def reconstruct(calibration: Calibration, F: np.ndarray, feat_p: Features2D, fea
             return Reconstruction(centroid, None, None, False, None, None, pairing, plane_angle, True, reasons,
                                   [_unit(hyps[c][0] - hyps[c][1]) for c in (CASE_A, CASE_B)],
                                   {"p": feat_p.tips, "q": feat_q.tips}, {"p": feat_p, "q": feat_q})
-        d = hyps[case][0] - hyps[case][1]
+    assert case is not None
+    d = hyps[case][0] - hyps[case][1]
+    if not paper and np.all(np.isfinite(d)) and np.linalg.norm(d) > 1e-9:
+        d = fuse_axis(calibration, centroid, {"p": feat_p, "q": feat_q}, _unit(d), settings)
     if not np.all(np.isfinite(d)) or np.linalg.norm(d) < 1e-9:
         raise ValueError("triangulated tips coincide or lie behind a source")
     d = _unit(d)

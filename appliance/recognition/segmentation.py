@@ -28,6 +28,9 @@ log = logging.getLogger(__name__)
 #: Noise reduction of the 5x5, sigma=1 Gaussian used for candidate detection (sqrt of the kernel's sum of squares).
 _SMOOTH_NOISE_GAIN = 0.29
 _MAX_CANDIDATES = 8
+#: Rows beyond the body and neighbouring columns averaged for the background fill across the body.
+_FILL_ROWS = 3
+_FILL_COLS = 7
 
 
 @dataclass(frozen=True)
@@ -127,9 +130,51 @@ def _grow(mask: np.ndarray, radius: int) -> np.ndarray:
     return cv2.dilate(mask.view(np.uint8), _disk(radius)).view(bool)
 
 
+def _fill_across(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """``values`` with each column's masked run replaced by the straight line between the pixels above
+    and below it (the caller transposes for rows). Each column's masked pixels must be one run that
+    does not touch the array's edge."""
+    h = mask.shape[0]
+    cols = np.flatnonzero(mask.any(axis=0))
+    sub = mask[:, cols]
+    top = np.argmax(sub, axis=0) - 1
+    bottom = h - np.argmax(sub[::-1], axis=0)
+    # Average a few rows beyond each end and a few neighbouring columns: the fill's noise would
+    # otherwise add a random tilt to every column of the robot.
+    v_top = sum(values[np.maximum(top - k, 0), cols] for k in range(_FILL_ROWS)) / _FILL_ROWS
+    v_bottom = sum(values[np.minimum(bottom + k, h - 1), cols] for k in range(_FILL_ROWS)) / _FILL_ROWS
+    if len(cols) >= _FILL_COLS:
+        kernel = np.ones(_FILL_COLS, dtype=np.float32) / _FILL_COLS
+        half = _FILL_COLS // 2
+        v_top = np.convolve(np.pad(v_top, half, mode="edge"), kernel, mode="valid")
+        v_bottom = np.convolve(np.pad(v_bottom, half, mode="edge"), kernel, mode="valid")
+    rows = np.arange(h, dtype=np.float32)[:, None]
+    fill = v_top + (v_bottom - v_top) * ((rows - top) / (bottom - top).astype(np.float32))
+    out = values.copy()
+    out[:, cols] = np.where(sub, fill, values[:, cols])
+    return out
+
+
+def _core_of(values: np.ndarray, comp: np.ndarray, peak: float, fraction: float) -> np.ndarray:
+    """The component's strong part that is connected to its peak."""
+    core = comp & (values >= fraction * peak)
+    n, labels = cv2.connectedComponents(core.view(np.uint8), connectivity=8)
+    if n > 2:
+        iy, ix = np.unravel_index(int(np.argmax(np.where(core, values, -np.inf))), core.shape)
+        core = labels == labels[iy, ix]
+    return core
+
+
 def _blob_from_component(a: np.ndarray, smooth: np.ndarray, labels: np.ndarray, label: int,
                          stats: np.ndarray, region: Roi, sigma: float, settings: RecognitionSettings) -> Blob | None:
-    """Refine one detected component into a robot candidate, or None if it is not plausible."""
+    """Refine one detected component into a robot candidate, or None if it is not plausible.
+
+    The robot's core (strong part) gives a provisional axis; the body's full extent is the part above
+    the local baseline connected to the core, limited to a capsule along that axis so a vessel it
+    crosses cannot leak in. The background under the body is then interpolated across the axis, from
+    the pixels just outside either long side of a rectangle around the body: exact for a vessel
+    crossing the robot, and only slightly low for a vessel the robot lies in.
+    """
     sigma_s = sigma * _SMOOTH_NOISE_GAIN
     x, y, bw, bh = (int(v) for v in stats[label, :4])
     comp = labels[y:y + bh, x:x + bw] == label
@@ -137,55 +182,81 @@ def _blob_from_component(a: np.ndarray, smooth: np.ndarray, labels: np.ndarray, 
     peak = float(values[comp].max())
     if peak < settings.min_peak_attenuation:
         return None
-    # The core: the component's strong part connected to its peak (a vessel stays below it).
-    core = comp & (values >= settings.core_fraction * peak)
-    n, core_labels = cv2.connectedComponents(core.view(np.uint8), connectivity=8)
-    if n > 2:
-        iy, ix = np.unravel_index(int(np.argmax(np.where(core, values, -np.inf))), core.shape)
-        core = core_labels == core_labels[iy, ix]
+    core = _core_of(values, comp, peak, settings.core_fraction)
     ys, xs = np.nonzero(core)
     if len(xs) < settings.min_pixels:
         return None
-    extent = max(xs.max() - xs.min(), ys.max() - ys.min()) + 1
+    extent = int(max(xs.max() - xs.min(), ys.max() - ys.min())) + 1
     if extent > settings.max_extent_px:
         return None
-    cov = np.cov(np.vstack([xs, ys])) if len(xs) > 2 else np.eye(2)
-    ev = np.linalg.eigvalsh(cov)
-    if np.sqrt(max(ev[1], 1e-9) / max(ev[0], 1e-3)) > settings.max_elongation:
+    xs_f, ys_f = xs.astype(np.float64), ys.astype(np.float64)
+    cx, cy = xs_f.mean(), ys_f.mean()
+    dx, dy = xs_f - cx, ys_f - cy
+    l1, l2, axis = _principal(float(dx @ dx), float(dy @ dy), float(dx @ dy), len(xs))
+    if np.sqrt(l1 / max(l2, 1e-3)) > settings.max_elongation:
         return None
-    # A window around the core holding the ring, the cone tip beyond the core and the dilated rim.
-    gap = settings.support_dilate_px + 1
-    grow = gap + settings.ring_px + max(4, extent // 2)
+    s_core = dx * axis[0] + dy * axis[1]
+    t_core = np.abs(-dx * axis[1] + dy * axis[0])
+    core_len = float(s_core.max() - s_core.min())
+    reach = settings.cone_reach * core_len + 3.0  # how far beyond the core a faint cone tip may go
+    pad = settings.support_dilate_px + 1.0
+    half_width = float(t_core.max()) + pad + 2.0
+    grow = int(np.ceil(reach + half_width + pad + _FILL_ROWS + 2))
     H, W = a.shape
-    wx0, wy0 = max(0, x + xs.min() - grow), max(0, y + ys.min() - grow)
-    wx1, wy1 = min(W, x + xs.max() + grow + 1), min(H, y + ys.max() + grow + 1)
-    core_w = np.zeros((wy1 - wy0, wx1 - wx0), dtype=bool)
-    core_w[ys + y - wy0, xs + x - wx0] = True
+    wx0, wy0 = max(0, x + int(xs.min()) - grow), max(0, y + int(ys.min()) - grow)
+    wx1, wy1 = min(W, x + int(xs.max()) + grow + 1), min(H, y + int(ys.max()) + grow + 1)
     a_w, s_w = a[wy0:wy1, wx0:wx1], smooth[wy0:wy1, wx0:wx1]
-    inner = _grow(core_w, gap)
-    ring = _grow(core_w, gap + settings.ring_px) & ~inner
-    baseline = float(np.median(a_w[ring])) if ring.any() else 0.0
+    gx = np.arange(wx0, wx1, dtype=np.float64)[None, :] - (x + cx)
+    gy = np.arange(wy0, wy1, dtype=np.float64)[:, None] - (y + cy)
+    s_w_ = gx * axis[0] + gy * axis[1]
+    t_w_ = -gx * axis[1] + gy * axis[0]
+    core_w = np.zeros(a_w.shape, dtype=bool)
+    core_w[ys + y - wy0, xs + x - wx0] = True
+    capsule = ((np.abs(t_w_) <= half_width) & (s_w_ >= s_core.min() - reach) & (s_w_ <= s_core.max() + reach))
+    # The local baseline: the median of a ring around the core (vessel, residual field).
+    gap = settings.support_dilate_px + 1
+    ring = _grow(core_w, gap + settings.ring_px) & ~_grow(core_w, gap)
+    baseline = float(np.median(s_w[ring])) if ring.any() else 0.0
     height = peak - baseline
     if height < settings.min_peak_attenuation:
         return None
     level = max(settings.support_sigma * sigma_s, settings.support_fraction * height)
-    above = (s_w - baseline) > level
-    # Keep only the parts of the support connected to the core (not a neighbouring vessel branch).
+    above = ((s_w - baseline) > level) & capsule
     n, sup_labels = cv2.connectedComponents(above.view(np.uint8), connectivity=8)
     keep = np.unique(sup_labels[core_w & above])
     mask = np.isin(sup_labels, keep[keep > 0]) | core_w
-    support = _grow(mask, settings.support_dilate_px)
-    weights = np.where(support, a_w - baseline, 0.0).astype(np.float32)
+    # The support: a rectangle around the body (convex, so each column/row crosses it once).
+    s_in, t_in = s_w_[mask], np.abs(t_w_[mask])
+    support = ((s_w_ >= s_in.min() - pad) & (s_w_ <= s_in.max() + pad) & (np.abs(t_w_) <= t_in.max() + pad))
+    m_ = _FILL_ROWS
+    edge = bool(support[:m_].any() or support[-m_:].any() or support[:, :m_].any() or support[:, -m_:].any())
+    if edge:
+        # The rectangle reaches the window's edge: only possible where the window was clipped by the
+        # searched region, i.e. the robot may be cut; shrink it to keep the interpolation inside.
+        support[:m_] = support[-m_:] = False
+        support[:, :m_] = support[:, -m_:] = False
+    if abs(axis[0]) >= abs(axis[1]):
+        background = _fill_across(s_w, support)
+    else:
+        background = _fill_across(s_w.T, support.T).T
+    # Weigh only near the body: every background pixel adds noise to the moments, more so far out.
+    near = _grow(mask, settings.support_dilate_px) & support
+    weights = np.where(near, a_w - background, 0.0).astype(np.float32)
     m = cv2.moments(weights)
     if m["m00"] <= 0:
         return None
     window = Roi(region.x0 + wx0, region.y0 + wy0, region.x0 + wx1, region.y0 + wy1)
-    edge = support[0].any() or support[-1].any() or support[:, 0].any() or support[:, -1].any()
-    touches = bool(edge and (wx0 == 0 or wy0 == 0 or wx1 == W or wy1 == H))
     return Blob(window=window, weights=weights, mask=mask, pixel_count=int(mask.sum()), peak=height,
                 baseline=baseline, sigma=sigma, strength=float(m["m00"]),
                 centroid_px=(window.x0 + m["m10"] / m["m00"], window.y0 + m["m01"] / m["m00"]),
-                touches_border=touches)
+                touches_border=edge)
+
+
+def _principal(sxx: float, syy: float, sxy: float, n: int) -> tuple[float, float, np.ndarray]:
+    """Eigenvalues and major unit axis of a pixel cloud's scatter (sums of centred products over n)."""
+    cov = np.array([[sxx, sxy], [sxy, syy]]) / max(n, 1)
+    ev, vec = np.linalg.eigh(cov)
+    return float(ev[1]), float(ev[0]), vec[:, 1]
 
 
 def segment(image: np.ndarray, log_bg: np.ndarray, roi: Roi | None = None,

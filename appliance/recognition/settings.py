@@ -28,12 +28,15 @@ class RecognitionSettings(StrictModel):
     detect_sigma: float = Field(6.0, gt=0)
     #: The robot's core: smoothed attenuation above this fraction of the component's peak (excludes the
     #: weaker contrast-filled vessel the robot sits in).
-    core_fraction: float = Field(0.35, gt=0, lt=1)
-    #: The weighted support: attenuation above the local baseline by this fraction of the peak ...
-    support_fraction: float = Field(0.08, gt=0, lt=1)
-    #: ... and by at least this many noise standard deviations; then dilated by ``support_dilate_px``
-    #: so that the blurred rim is weighed too.
+    core_fraction: float = Field(0.5, gt=0, lt=1)
+    #: The body: pixels above the local baseline by this fraction of the peak ...
+    support_fraction: float = Field(0.2, gt=0, lt=1)
+    #: ... and by at least this many noise standard deviations, connected to the core and within
+    #: ``cone_reach`` core lengths beyond it along the axis (a faint cone tip lies beyond the core).
     support_sigma: float = Field(3.0, gt=0)
+    cone_reach: float = Field(0.7, ge=0, le=2)
+    #: The weighted support is the body's bounding rectangle (along the axis) grown by this many pixels,
+    #: so that the blurred rim is weighed too.
     support_dilate_px: int = Field(2, ge=0, le=8)
     #: Width (px) of the ring around the robot whose median attenuation is the local (vessel) baseline.
     ring_px: int = Field(3, ge=1, le=16)
@@ -45,6 +48,15 @@ class RecognitionSettings(StrictModel):
     min_peak_attenuation: float = Field(0.25, gt=0)
     #: Largest aspect ratio sqrt(l1/l2) of a robot (a contrast-filled vessel is longer and thinner).
     max_elongation: float = Field(40.0, gt=1)
+
+    # -- features -------------------------------------------------------------------------------------
+    #: The 2D axis is the principal axis of the weights capped at this fraction of the peak (1: uncapped).
+    axis_saturation: float = Field(1.0, gt=0, le=1)
+
+    #: Floor (radians) under a view's axis-angle noise: blur and pixelation biases that noise does not show.
+    axis_floor_rad: float = Field(0.001, gt=0)
+    #: Noise (px) of a tip along the axis, which weighs the tips' direction against the axis planes.
+    tip_sigma_px: float = Field(0.7, gt=0)
 
     # -- correspondence and reconstruction ------------------------------------------------------------
     #: Two views' blobs pair up only if their centroids are within this epipolar distance (px).
