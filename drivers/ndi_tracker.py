@@ -71,7 +71,7 @@ class NdiCommandError(DeviceError):
         super().__init__(f"tracker at {where} answered ERROR{code:02X} to {command}: {self.meaning}")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class ToolSample:
     """One tool in one tracker frame. Pose fields are None when the tool is missing or disabled."""
 
@@ -131,27 +131,26 @@ class NDITracker:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def connect(self, baudrate: int = 115200, *, probe_timeout_s: float = 0.5, reset_timeout_s: float = 10.0,
-                free_all_handles: bool = True) -> None:
+    def connect(self, baudrate: int = 115200, *, reset: bool = False, probe_timeout_s: float = 0.5,
+                reset_timeout_s: float = 10.0, free_all_handles: bool = True) -> None:
         """INIT the tracker (break and RESET it if it does not answer), then COMM to ``baudrate`` on serial.
 
-        With ``free_all_handles`` the port handles a previous session left allocated are freed, so that
+        ``reset`` sends the serial break first, whatever state the tracker is in (serial only). With
+        ``free_all_handles`` the port handles a previous session left allocated are freed, so that
         frames hold only the tools this session loads; otherwise only those the tracker marks to free.
         """
         if not self.network:
+            CommSettings(baudrate).encode_params()      # an unsupported speed fails before any byte is sent
             self.port.baudrate = POWER_ON_BAUD
+        if reset and not self.network:
+            self._break_and_reset(reset_timeout_s)
         try:
             self._init(probe_timeout_s)
         except (DeviceTimeoutError, ProtocolError) as first:
-            if self.network or not hasattr(self.port, "send_break"):
+            if self.network or reset:
                 raise
             log.info("%s: no answer to INIT (%s); sending a serial break", self.where, first)
-            with self._io:
-                self._flush_input()
-                self._io_call(self.port.send_break, 0.25)
-                reply = self._read_text(time.monotonic() + reset_timeout_s, "serial break")
-            if reply != "RESET":
-                raise ProtocolError(f"tracker at {self.where} answered {reply!r} to a serial break instead of RESET")
+            self._break_and_reset(reset_timeout_s)
             self._init(probe_timeout_s)
         if not self.network and baudrate != POWER_ON_BAUD:
             self.command("COMM", CommSettings(baudrate).encode_params())
@@ -159,6 +158,20 @@ class NDITracker:
             self.port.baudrate = baudrate
         self.free_handles(all_allocated=free_all_handles)
         log.info("%s: tracker initialised%s", self.where, "" if self.network else f" at {self.port.baudrate} baud")
+
+    def _break_and_reset(self, timeout_s: float) -> None:
+        """A serial break resets the tracker to 9600 baud; it answers RESET when it is ready again."""
+        if not hasattr(self.port, "send_break"):
+            raise DeviceError(f"port {self.where} cannot send a serial break")
+        with self._io:
+            self._flush_input()
+            self._io_call(self.port.send_break, 0.25)
+            self.port.baudrate = POWER_ON_BAUD
+            reply = self._read_text(time.monotonic() + timeout_s, "serial break")
+        if reply != "RESET":
+            raise ProtocolError(f"tracker at {self.where} answered {reply!r} to a serial break instead of RESET")
+        self.tools.clear()
+        self.tracking = False
 
     def _init(self, timeout_s: float) -> None:
         try:
@@ -263,6 +276,7 @@ class NDITracker:
             transform = np.eye(4)
             transform[:3, :3] = quaternion_to_matrix(record.quaternion)
             transform[:3, 3] = record.translation_mm
+            transform.setflags(write=False)     # samples are shared between threads
             samples.append(ToolSample(record.handle, rom, record.frame, t, missing=False, transform=transform,
                                       quaternion=tuple(float(v) for v in record.quaternion),  # type: ignore[arg-type]
                                       rms_mm=float(record.rms_mm or 0.0), port_status=record.port_status))
@@ -384,7 +398,7 @@ class NDITracker:
         """The newest frame the reader got (None before the first); re-raises the error that stopped it."""
         if self._reader_error is not None:
             raise self._reader_error
-        return self._latest
+        return list(self._latest) if self._latest is not None else None
 
     def wait_for_frame(self, newer_than: int = -1, timeout_s: float = 1.0) -> list[ToolSample]:
         """Block until the reader has a frame numbered above ``newer_than``; DeviceTimeoutError otherwise."""

@@ -15,6 +15,8 @@ from pathlib import Path
 
 NAME = "ots"
 HELP = "read an NDI optical tracker: stream tool poses as JSON lines, or print its version text"
+#: Line speeds a COMM command can select (NDI's table).
+_SPEEDS = (9600, 14400, 19200, 38400, 57600, 115200, 230400, 921600, 1228739)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -24,8 +26,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     for sub in (stream, info):
         sub.add_argument("--port", required=True, metavar="PATH_OR_HOST:PORT",
                          help="serial device or pty path (Polaris), or host:port (Vega, default port 8765)")
-        sub.add_argument("--baud", type=int, default=115200,
+        sub.add_argument("--baud", type=int, default=115200, choices=_SPEEDS, metavar="BAUD",
                          help="serial speed to switch to after INIT (default 115200; ignored on TCP)")
+        sub.add_argument("--reset", action="store_true",
+                         help="send a serial break first so the tracker resets (serial only)")
         sub.add_argument("--timeout", type=float, default=2.0, metavar="S", help="reply timeout per command")
     stream.add_argument("--rom", action="append", required=True, type=Path, metavar="FILE",
                         help="passive tool definition (.rom); repeat for several tools")
@@ -66,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
 
     port = open_serial(args.port, baudrate=9600, timeout=0.05)
     with NDITracker(port, reply_timeout_s=args.timeout, clock=time.time) as tracker:
-        tracker.connect(baudrate=args.baud)
+        tracker.connect(baudrate=args.baud, reset=args.reset)
         if args.action == "info":
             print(tracker.version().rstrip("\n"))
             return 0

@@ -150,6 +150,23 @@ def test_silent_tracker_gets_a_break_then_reset_then_init(scripted: list[Scripte
     ndi.connect(9600, probe_timeout_s=0.05, reset_timeout_s=0.5, free_all_handles=False)
 
 
+def test_forced_reset_breaks_first_then_switches_speed(scripted: list[ScriptedPort]) -> None:
+    ndi = tracker(scripted, [
+        (BREAK, encode_reply("RESET")),
+        (cmd("INIT:"), OKAY),
+        (cmd("COMM:A0000"), OKAY),
+        (cmd("PHSR:00"), encode_reply("00")),
+    ])
+    ndi.connect(230400, reset=True, reset_timeout_s=0.5)
+    assert scripted[0].baud_history[-1] == 230400
+
+
+def test_unsupported_speed_fails_before_any_byte(scripted: list[ScriptedPort]) -> None:
+    ndi = tracker(scripted, [])
+    with pytest.raises(ValueError, match="COMM cannot select 4800 baud"):
+        ndi.connect(4800)
+
+
 def test_init_while_tracking_stops_tracking_first(scripted: list[ScriptedPort]) -> None:
     ndi = tracker(scripted, [
         (cmd("INIT:"), encode_error(0x0C)),
