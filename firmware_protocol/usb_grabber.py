@@ -273,37 +273,45 @@ class FrameAssembler:
                     continue
                 self._scan_from = HEADER_SIZE
             need = HEADER_SIZE + self._header.payload_length
-            if len(buf) < need:
-                if self._next_header_inside(len(buf)):
-                    continue
-                break
-            if self._next_header_inside(need):
+            inside = self._next_header_inside(min(need, len(buf)))
+            if inside == "found":
                 continue
+            if len(buf) < need or inside == "wait":
+                break
             payload = bytes(buf[HEADER_SIZE:need])
             header = self._header
             self._header = None
             if zlib.crc32(payload) != header.payload_crc:
-                self.stats.bad_crc += 1
-                self._drop(need)
+                # A magic inside the payload (its header damaged too) still marks where the frame was cut.
+                cut = buf.find(FRAME_MAGIC, HEADER_SIZE, need)
+                if cut >= 0:
+                    self.stats.truncated += 1
+                    self._drop(cut)
+                else:
+                    self.stats.bad_crc += 1
+                    self._drop(need)
                 continue
             del buf[:need]
             self.stats.frames += 1
             out.append(AssembledFrame(header, payload))
         return out
 
-    def _next_header_inside(self, end: int) -> bool:
-        """Whether a valid header starts inside the pending frame's payload before ``end`` (the pending
-        frame was truncated); if so, drop the truncated frame and return True."""
+    def _next_header_inside(self, end: int) -> str:
+        """Look for a valid header starting inside the pending frame's payload before ``end``.
+
+        ``"found"``: the pending frame was truncated; it is dropped and the buffer starts at the new
+        header. ``"wait"``: a magic sits there but its header is not complete yet. ``"none"``: nothing.
+        """
         buf = self._buf
         pos = self._scan_from
         while True:
             hit = buf.find(FRAME_MAGIC, pos, end)
             if hit < 0:
                 self._scan_from = max(HEADER_SIZE, end - len(FRAME_MAGIC) + 1)
-                return False
+                return "none"
             if hit + HEADER_SIZE > len(buf):
                 self._scan_from = hit      # look again once the whole candidate header is here
-                return False
+                return "wait"
             try:
                 FrameHeader.decode(bytes(buf[hit:hit + HEADER_SIZE]))
             except FrameError:
@@ -312,7 +320,7 @@ class FrameAssembler:
             self.stats.truncated += 1
             self._header = None
             self._drop(hit)
-            return True
+            return "found"
 
     def _drop(self, n: int) -> None:
         if n > 0:

@@ -137,7 +137,7 @@ class FakeGrabberDevice:
             bLength=7, bDescriptorType=5, bEndpointAddress=proto.BULK_IN_ENDPOINT, bmAttributes=0x02,
             wMaxPacketSize=512, bInterval=0, bRefresh=0, bSynchAddress=0, extra_descriptors=[])
         # Host-visible state.
-        self.configuration = 0
+        self.configuration = 1          # the OS configures a device on enumeration, as Linux does
         self.claimed_by: object | None = None
         self.permission_denied = False
         self.unplugged = False
@@ -297,7 +297,7 @@ class FakeGrabberDevice:
     def _send(self, size: int) -> bytes:
         end = min(len(self._current), self._offset + size)
         if self._fault is Fault.SHORT_TRANSFERS:
-            end = min(end, self._offset + int(self._rng.integers(1, 700)))
+            end = min(end, self._offset + int(self._rng.integers(1, max(2, min(700, len(self._current) // 3)))))
         if self._fault_at >= 0 and self._offset >= self._fault_at:
             fault, self._fault_at = self._fault, -1
             if fault is Fault.STALL:
