@@ -17,7 +17,8 @@ rotational drag. Drag coefficients (SI: N s/m, N m s):
   integral of u over the annulus = -U pi a^2; drag = -(2 pi a mu u'(a) - pi a^2 G) L / U.
   For a 2 mm rod in a 5 mm lumen that is 8.3 times the free value. The same ratio is applied to the
   lateral and rotational drag (an approximation: the wall effect on those is of the same order).
-  The confined value is used once it exceeds the free one (it tends to 1.2x free for wide tubes).
+  The larger of the confined and free values is used (the annular model ignores the rod's ends and
+  falls below the free value in tubes wider than ~10 rod radii).
 
 Fluid defaults: blood-like, viscosity 3.5 mPa s, density 1060 kg/m^3. Magnet: NdFeB N35-like
 Br = 1.2 T, density 7500 kg/m^3.
