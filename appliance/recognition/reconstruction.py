@@ -213,10 +213,43 @@ def _finish_paper(calibration: Calibration, centroid: np.ndarray, d: np.ndarray,
                           plane_angle, ambiguous, reasons, None, view_tips, {"p": feat_p, "q": feat_q})
 
 
+def perspective_corrected_centroid(calibration: Calibration, feats: dict[str, Features2D], centroid: np.ndarray,
+                                   d: np.ndarray) -> np.ndarray:
+    """Re-triangulate the centroid after removing the perspective bias of each view's weighted centroid.
+
+    A body element at ``s`` along the axis (from the centroid) appears with weight ``~ 1/depth^2`` (more
+    rays cross what is nearer the source) at an image position compressed as ``1/depth``; to first order
+    the image's weighted centroid is the projection of ``C - 3 k Var / z d``, where ``Var`` is the
+    body's mass variance along its axis, ``z`` the source distance and ``k = d . ray``. For a 30 mm
+    robot that is 0.3 mm, three times the accuracy we aim for; for a 3 mm robot it is negligible.
+    """
+    best = None
+    for name, feat in feats.items():
+        view = calibration.views[name]
+        ray = centroid - view.source_mm
+        z = float(np.linalg.norm(ray))
+        sin2 = 1.0 - float(np.dot(ray / z, d)) ** 2
+        mm_per_px = z / float(view.K[0, 0])
+        if best is None or sin2 > best[0]:
+            best = (sin2, feat.eigenvalues[0] * mm_per_px ** 2 / max(sin2, 1e-6))
+    assert best is not None
+    variance = best[1]
+    corrected = {}
+    for name, feat in feats.items():
+        view = calibration.views[name]
+        ray = centroid - view.source_mm
+        z = float(np.linalg.norm(ray))
+        shift = -3.0 * float(np.dot(ray / z, d)) * variance / z
+        seen, true = view.project(np.vstack([centroid + shift * d, centroid]))
+        corrected[name] = feat.centroid + (true - seen)
+    return triangulate(calibration.p, calibration.q, corrected["p"], corrected["q"], optimal=True)[0]
+
+
 def _finish_weighted(calibration: Calibration, centroid: np.ndarray, d: np.ndarray, feat_p: Features2D,
                      feat_q: Features2D, pairing: Pairing, plane_angle: float, ambiguous: bool, reasons: list[str],
                      previous: np.ndarray | None) -> Reconstruction:
     views = {"p": (calibration.p, feat_p), "q": (calibration.q, feat_q)}
+    centroid = perspective_corrected_centroid(calibration, {"p": feat_p, "q": feat_q}, centroid, d)
     # Which 2D tip of each view is the +d end, and where the views put the head.
     plus_index: dict[str, int] = {}
     votes: list[bool] = []  # True: the head is the +d end
