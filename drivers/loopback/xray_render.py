@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Sequence
 
 import cv2
 import numpy as np
@@ -110,8 +110,8 @@ class RenderedPair:
     tail_mm: np.ndarray | None
 
 
-# A traced object: bbox in pixels, and a function from ideal normalized camera coordinates
-# (x, y arrays) to its attenuation line integral mu * L along those rays.
+# A traced object's chord function: ideal normalized camera coordinates (x, y arrays) to the path
+# length (mm) through the object along those rays.
 _Tracer = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 
@@ -184,28 +184,33 @@ def _edge_of(mask: np.ndarray) -> np.ndarray:
     return (cv2.dilate(m, kernel) > 0) & ~(cv2.erode(m, kernel, borderType=cv2.BORDER_REPLICATE) > 0)
 
 
-def _trace(state: _ViewState, objects: list[tuple[Bbox, _Tracer]], region: Bbox, supersample: int
-           ) -> tuple[np.ndarray, np.ndarray]:
-    """Mean transmission and shadow coverage of ``region``'s pixels through ``objects``.
+def _trace(state: _ViewState, objects: list[tuple[Bbox, _Tracer, float]], region: Bbox,
+           supersample: int) -> tuple[np.ndarray, np.ndarray]:
+    """Mean transmission and shadow coverage of ``region``'s pixels through ``objects``, each a
+    (bbox, chord function, attenuation per mm).
 
     Pixel centres first; pixels on an object's silhouette edge are then re-traced with
     ``supersample``^2 sub-pixel rays and their transmission averaged (exp of the sum per ray, so
     overlapping objects combine correctly)."""
     rx0, ry0, rx1, ry1 = region
     acc = np.zeros((ry1 - ry0, rx1 - rx0))
+    covered = np.zeros(acc.shape, bool)
     edge = np.zeros(acc.shape, bool)
-    for (x0, y0, x1, y1), tracer in objects:
+    for (x0, y0, x1, y1), chords, mu in objects:
         x0, y0, x1, y1 = max(x0, rx0), max(y0, ry0), min(x1, rx1), min(y1, ry1)
         if x1 <= x0 or y1 <= y0:
             continue
+        lengths = np.empty((y1 - y0, x1 - x0))
         for r0 in range(y0, y1, _ROWS_PER_CHUNK):
             r1 = min(r0 + _ROWS_PER_CHUNK, y1)
-            x, y = state.normalized_block(x0, r0, x1, r1)
-            acc[r0 - ry0:r1 - ry0, x0 - rx0:x1 - rx0] += tracer(x, y)
-        hit = acc[y0 - ry0:y1 - ry0, x0 - rx0:x1 - rx0] > 0
-        edge[y0 - ry0:y1 - ry0, x0 - rx0:x1 - rx0] |= _edge_of(hit)
+            lengths[r0 - y0:r1 - y0] = chords(*state.normalized_block(x0, r0, x1, r1))
+        block = np.s_[y0 - ry0:y1 - ry0, x0 - rx0:x1 - rx0]
+        acc[block] += mu * lengths
+        hit = lengths > 0
+        covered[block] |= hit
+        edge[block] |= _edge_of(hit)
     transmission = np.exp(-acc)
-    coverage = (acc > 0).astype(float)
+    coverage = covered.astype(float)
     if supersample > 1 and edge.any():
         rows, cols = np.nonzero(edge)
         offsets = (np.arange(supersample) + 0.5) / supersample - 0.5
@@ -214,12 +219,15 @@ def _trace(state: _ViewState, objects: list[tuple[Bbox, _Tracer]], region: Bbox,
         v = (rows + ry0)[:, None] + dv.ravel()[None, :]
         x, y = state.normalized_points(u, v)
         sub = np.zeros(u.shape)
-        for (x0, y0, x1, y1), tracer in objects:
+        sub_hit = np.zeros(u.shape, bool)
+        for (x0, y0, x1, y1), chords, mu in objects:
             inside = (u[:, 0] >= x0 - 1) & (u[:, 0] < x1 + 1) & (v[:, 0] >= y0 - 1) & (v[:, 0] < y1 + 1)
             if inside.any():
-                sub[inside] += tracer(x[inside], y[inside])
+                lengths = chords(x[inside], y[inside])
+                sub[inside] += mu * lengths
+                sub_hit[inside] |= lengths > 0
         transmission[rows, cols] = np.exp(-sub).mean(axis=1)
-        coverage[rows, cols] = (sub > 0).mean(axis=1)
+        coverage[rows, cols] = sub_hit.mean(axis=1)
     return transmission, coverage
 
 
@@ -231,14 +239,20 @@ class BiplaneRenderer:
     """
 
     def __init__(self, views: dict[str, TrueView], body: RobotBody | None, *,
-                 vessel: VesselPhantom | None = None,
+                 vessel: VesselPhantom | Sequence[VesselPhantom] | None = None,
                  beads: tuple[np.ndarray, float, float] | None = None,
                  settings: ImagingSettings = ImagingSettings(), seed: int | None = None) -> None:
         if not views:
             raise ValueError("need at least one view")
         self.views = dict(views)
         self.body = body
-        self.vessel = vessel
+        if vessel is None:
+            self.vessels: tuple[VesselPhantom, ...] = ()
+        elif isinstance(vessel, VesselPhantom):
+            self.vessels = (vessel,)
+        else:
+            self.vessels = tuple(vessel)
+        self.vessel = self.vessels[0] if self.vessels else None
         self.settings = settings
         self._rng = np.random.default_rng(seed)
         self._beads = None
@@ -283,20 +297,20 @@ class BiplaneRenderer:
         return s.photons_per_pixel * cos3 * heel * vignette
 
     def _static_transmission(self, state: _ViewState) -> np.ndarray:
-        objects: list[tuple[Bbox, _Tracer]] = []
-        if self.vessel is not None:
-            mu, radius = self.vessel.attenuation_per_mm, self.vessel.radius_mm
-            for start, end, n_start, n_end in self.vessel.segments():
+        objects: list[tuple[Bbox, _Tracer, float]] = []
+        for vessel in self.vessels:
+            mu, radius = vessel.attenuation_per_mm, vessel.radius_mm
+            for start, end, n_start, n_end in vessel.segments():
                 bbox, _ = state.bbox_of(_box_corners(np.vstack([start, end]), radius * 1.5))
                 if bbox is None:
                     continue
-                objects.append((bbox, _segment_tracer(state, start, end, n_start, n_end, radius, mu)))
+                objects.append((bbox, _segment_tracer(state, start, end, n_start, n_end, radius), mu))
         if self._beads is not None:
             centres, radius, mu = self._beads
             for centre in centres:
                 bbox, _ = state.bbox_of(_box_corners(centre[None, :], radius))
                 if bbox is not None:
-                    objects.append((bbox, _sphere_tracer(state, centre, radius, mu)))
+                    objects.append((bbox, _sphere_tracer(state, centre, radius), mu))
         if not objects:
             return np.ones((state.h, state.w))
         log.debug("view %s: tracing %d static objects", state.view.name, len(objects))
@@ -330,8 +344,9 @@ class BiplaneRenderer:
         bbox, clipped = state.bbox_of(_box_corners(np.vstack([head, tail]), body.radius_mm))
         transmission = coverage = None
         if bbox is not None:
-            transmission, coverage = _trace(state, [(bbox, _robot_tracer(state, body, pose))], bbox,
-                                            self.settings.supersample)
+            mu = body.attenuation_per_mm - self._displaced_mu(pose)
+            transmission, coverage = _trace(state, [(bbox, _robot_tracer(state, body, pose), mu)],
+                                            bbox, self.settings.supersample)
         if coverage is None or not coverage.any():
             none = ViewTruth(centroid_px=marks[0], head_px=marks[1], tail_px=marks[2], pixel_count=0,
                              bbox=(0, 0, 0, 0), in_view=False, fully_in_view=False)
@@ -348,6 +363,12 @@ class BiplaneRenderer:
                           in_view=True, fully_in_view=not (clipped and touches),
                           area_px=float(coverage.sum()))
         return truth, (bbox, transmission.astype(np.float32))
+
+    def _displaced_mu(self, pose: RobotPose) -> float:
+        """Attenuation of the contrast the robot pushes aside: the vessels whose lumen holds its
+        centroid (the body is taken as wholly inside that lumen)."""
+        return sum(v.attenuation_per_mm for v in self.vessels
+                   if v.distance_mm(pose.centroid_mm[None, :])[0] <= v.radius_mm)
 
     def _expose(self, state: _ViewState, patch: tuple[Bbox, np.ndarray] | None) -> np.ndarray:
         """Expected counts (static background times the robot's transmission patch) -> noisy,
@@ -431,25 +452,23 @@ def _robot_tracer(state: _ViewState, body: RobotBody, pose: RobotPose) -> _Trace
     operp = o - opar * u
     operp2 = float(operp @ operp)
     ru, ro = state.view.R @ u, state.view.R @ operp     # camera-axis forms: two dots per ray
-    mu = body.attenuation_per_mm
 
     def tracer(x: np.ndarray, y: np.ndarray) -> np.ndarray:
         inv_n = 1.0 / np.sqrt(x * x + y * y + 1.0)
-        return mu * robot_chords_from_dots(body, opar, operp2, _dot(x, y, inv_n, ru),
-                                           _dot(x, y, inv_n, ro))
+        return robot_chords_from_dots(body, opar, operp2, _dot(x, y, inv_n, ru), _dot(x, y, inv_n, ro))
     return tracer
 
 
-def _sphere_tracer(state: _ViewState, centre: np.ndarray, radius: float, mu: float) -> _Tracer:
+def _sphere_tracer(state: _ViewState, centre: np.ndarray, radius: float) -> _Tracer:
     def tracer(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        return mu * sphere_chords(centre, radius, state.source, state.world_dirs(x, y))
+        return sphere_chords(centre, radius, state.source, state.world_dirs(x, y))
     return tracer
 
 
 def _segment_tracer(state: _ViewState, start: np.ndarray, end: np.ndarray, n_start: np.ndarray,
-                    n_end: np.ndarray, radius: float, mu: float) -> _Tracer:
+                    n_end: np.ndarray, radius: float) -> _Tracer:
     def tracer(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        return mu * tube_segment_chords(start, end, n_start, n_end, radius, state.source,
+        return tube_segment_chords(start, end, n_start, n_end, radius, state.source,
                                         state.world_dirs(x, y))
     return tracer
 

@@ -27,8 +27,6 @@ import numpy as np
 # then gets wider than the nominal angle. ``appliance.robots`` uses the same rule.
 MAX_CONE_FRACTION = 0.8
 
-_TINY = 1e-12
-
 
 # ----------------------------------------------------------------------------------------- views
 @dataclass(frozen=True)
@@ -262,6 +260,15 @@ class VesselPhantom:
         pts.setflags(write=False)
         object.__setattr__(self, "centreline_mm", pts)
 
+    def distance_mm(self, points_mm: np.ndarray) -> np.ndarray:
+        """Distance of points (N,3) from the centreline (N,); inside the lumen where <= radius."""
+        p = np.asarray(points_mm, dtype=float).reshape(-1, 1, 3)
+        a, b = self.centreline_mm[:-1], self.centreline_mm[1:]
+        ab = b - a
+        t = np.clip(np.einsum("nsk,sk->ns", p - a, ab) / np.einsum("sk,sk->s", ab, ab), 0.0, 1.0)
+        closest = a + t[..., None] * ab
+        return np.linalg.norm(p - closest, axis=-1).min(axis=1)
+
     def segments(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
         """Per segment: start, end, and the outward normals of its start and end mitre planes."""
         pts = self.centreline_mm
@@ -279,43 +286,46 @@ def _unit(v: np.ndarray) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- closed-form chords
-def _quadric_roots(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray,
-                                                                          np.ndarray]:
-    """Sorted roots of a s^2 + b s + c (stable form) and whether they are real."""
-    disc = b * b - 4.0 * a * c
+# Intervals of the ray parameter s are (lo, hi) arrays; empty ones have lo >= hi. Infinite bounds
+# and IEEE arithmetic stand in for special cases (a ray parallel to a slab gets +-inf from 1/0), and
+# fmin/fmax ignore the NaN of a measure-zero 0*inf, so the hot path has almost no branches.
+def _roots(a: np.ndarray, half_b: np.ndarray, c: np.ndarray | float
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sorted roots of ``a s^2 + 2 half_b s + c`` in the cancellation-free form, and where real."""
+    disc = half_b * half_b - a * c
     real = disc >= 0.0
-    sq = np.sqrt(np.where(real, disc, 0.0))
-    q = -0.5 * (b + np.copysign(sq, b))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        r1 = q / a
-        r2 = c / q
+    k = -(half_b + np.copysign(np.sqrt(np.maximum(disc, 0.0)), half_b))
+    r1 = k / a
+    r2 = c / k
     return np.fmin(r1, r2), np.fmax(r1, r2), real
 
 
-def _halfspace(dn: np.ndarray, on: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _length(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Length of the part of [lo, hi] in front of the source (s >= 0); 0 if empty."""
+    return np.fmax(hi - np.fmax(lo, 0.0), 0.0)
+
+
+def _halfspace(dn: np.ndarray, on: float) -> tuple[np.ndarray, np.ndarray]:
     """Interval of s with ``on + s*dn >= 0``."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s0 = -on / dn
-    inside = np.asarray(on) >= 0.0
-    lo = np.where(dn > _TINY, s0, np.where(dn < -_TINY, -np.inf, np.where(inside, -np.inf, np.inf)))
-    hi = np.where(dn < -_TINY, s0, np.where(dn > _TINY, np.inf, np.where(inside, np.inf, -np.inf)))
+    s0 = -on / dn
+    lo = np.where(dn > 0.0, s0, -np.inf)
+    hi = np.where(dn < 0.0, s0, np.inf)
+    if on < 0.0:                       # source outside: a ray parallel to the plane never enters
+        lo = np.where(dn == 0.0, np.inf, lo)
     return lo, hi
 
 
 def _infinite_cylinder(dpar: np.ndarray, q: np.ndarray, operp2: float, r: float
                        ) -> tuple[np.ndarray, np.ndarray]:
-    """Interval inside an infinite cylinder of radius r (rays of unit direction)."""
+    """Interval inside an infinite cylinder of radius r about the axis (rays of unit direction)."""
     a = 1.0 - dpar * dpar
-    s1, s2, real = _quadric_roots(a, 2.0 * q, np.full_like(a, operp2 - r * r))
-    parallel = a < 1e-14           # ray along the axis: all in or all out
-    inside_parallel = operp2 <= r * r
-    lo = np.where(parallel, -np.inf if inside_parallel else np.inf, np.where(real, s1, np.inf))
-    hi = np.where(parallel, np.inf if inside_parallel else -np.inf, np.where(real, s2, -np.inf))
+    lo, hi, real = _roots(a, q, operp2 - r * r)
+    lo = np.where(real, lo, np.inf)
+    parallel = a < 1e-14               # a ray along the axis is all in or all out
+    if np.any(parallel):
+        lo = np.where(parallel, -np.inf if operp2 <= r * r else np.inf, lo)
+        hi = np.where(parallel, np.inf, hi)
     return lo, hi
-
-
-def _length(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    return np.nan_to_num(np.maximum(hi - np.maximum(lo, 0.0), 0.0), posinf=0.0)
 
 
 def _axial_terms(source: np.ndarray, base: np.ndarray, axis: np.ndarray
@@ -344,30 +354,24 @@ def robot_chords_from_dots(body: RobotBody, opar: float, operp2: float, dpar: np
     h = body.cone_length_mm
     cyl_len = body.length_mm - h
     dpar, q = np.broadcast_arrays(dpar, q)
-    # Cylinder: infinite cylinder clipped by the slab 0 <= z <= cyl_len.
-    lo, hi = _infinite_cylinder(dpar, q, operp2, r)
-    z0_lo, z0_hi = _halfspace(dpar, opar)                    # z >= 0
-    z1_lo, z1_hi = _halfspace(-dpar, cyl_len - opar)         # z <= cyl_len
-    lo_c = np.maximum(lo, np.maximum(z0_lo, z1_lo))
-    hi_c = np.minimum(hi, np.minimum(z0_hi, z1_hi))
-    total = _length(lo_c, hi_c)
-    # Cone: rho^2 <= k^2 (L - z)^2 on the slab cyl_len <= z <= L (which picks the right nappe).
-    k2 = (r / h) ** 2
-    w = body.length_mm - opar
-    big_a = (1.0 - dpar * dpar) - k2 * dpar * dpar
-    big_b = 2.0 * (q + k2 * w * dpar)
-    big_c = np.full_like(dpar, operp2 - k2 * w * w)
-    s1, s2, real = _quadric_roots(big_a, big_b, big_c)
-    slab_lo = np.maximum(_halfspace(dpar, opar - cyl_len)[0], _halfspace(-dpar, w)[0])
-    slab_hi = np.minimum(_halfspace(dpar, opar - cyl_len)[1], _halfspace(-dpar, w)[1])
-    opening = big_a > 0.0
-    # big_a > 0: inside between the roots. big_a < 0: inside outside the roots (both nappes); the
-    # slab keeps only one, so at most one of the two pieces is non-empty.
-    inner = _length(np.maximum(slab_lo, s1), np.minimum(slab_hi, s2))
-    inner = np.where(real, inner, 0.0)
-    outer = (_length(slab_lo, np.minimum(slab_hi, np.where(real, s1, np.inf)))
-             + np.where(real, _length(np.maximum(slab_lo, s2), slab_hi), 0.0))
-    total = total + np.where(opening, inner, outer)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        inv = 1.0 / dpar
+        # Where the ray crosses the tail face, the cone's base plane and the apex plane.
+        t0, t1, t2 = -opar * inv, (cyl_len - opar) * inv, (body.length_mm - opar) * inv
+        lo, hi = _infinite_cylinder(dpar, q, operp2, r)
+        total = _length(np.fmax(lo, np.fmin(t0, t1)), np.fmin(hi, np.fmax(t0, t1)))
+        # Cone: rho^2 <= k^2 (L - z)^2, a double cone; the slab cyl_len <= z <= L keeps one nappe.
+        k2 = (r / h) ** 2
+        w = body.length_mm - opar
+        big_a = (1.0 - dpar * dpar) - k2 * dpar * dpar
+        s1, s2, real = _roots(big_a, q + k2 * w * dpar, operp2 - k2 * w * w)
+        slab_lo, slab_hi = np.fmin(t1, t2), np.fmax(t1, t2)
+        # big_a > 0: inside between the roots. big_a < 0: the ray is steeper than the cone's
+        # flank and is inside outside the roots (one piece per nappe; the slab keeps one).
+        inner = np.where(real, _length(np.fmax(slab_lo, s1), np.fmin(slab_hi, s2)), 0.0)
+        outer = np.where(real, _length(slab_lo, np.fmin(slab_hi, s1))
+                         + _length(np.fmax(slab_lo, s2), slab_hi), _length(slab_lo, slab_hi))
+        total += np.where(big_a > 0.0, inner, outer)
     return total
 
 
@@ -387,10 +391,11 @@ def tube_segment_chords(start: np.ndarray, end: np.ndarray, n_start: np.ndarray,
     the end plane (normal ``n_end``, kept behind it)."""
     axis = _unit(end - start)
     opar, operp, operp2 = _axial_terms(source, start, axis)
-    lo, hi = _infinite_cylinder(dirs @ axis, dirs @ operp, operp2, radius)
-    s_lo, s_hi = _halfspace(dirs @ n_start, float((source - start) @ n_start))
-    e_lo, e_hi = _halfspace(-(dirs @ n_end), float(-((source - end) @ n_end)))
-    return _length(np.maximum(lo, np.maximum(s_lo, e_lo)), np.minimum(hi, np.minimum(s_hi, e_hi)))
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        lo, hi = _infinite_cylinder(dirs @ axis, dirs @ operp, operp2, radius)
+        s_lo, s_hi = _halfspace(dirs @ n_start, float((source - start) @ n_start))
+        e_lo, e_hi = _halfspace(-(dirs @ n_end), float(-((source - end) @ n_end)))
+        return _length(np.fmax(lo, np.fmax(s_lo, e_lo)), np.fmin(hi, np.fmin(s_hi, e_hi)))
 
 
 def vessel_chords(vessel: VesselPhantom, source: np.ndarray, dirs: np.ndarray) -> np.ndarray:

@@ -175,6 +175,35 @@ def test_measured_path_length_at_the_cylinder_middle_is_the_diameter() -> None:
         assert mu_l / ROBOT_1.attenuation_per_mm == pytest.approx(ROBOT_1.diameter_mm, rel=2e-3)
 
 
+def test_robot_in_a_vessel_displaces_the_contrast() -> None:
+    views = biplane_views(**SMALL)
+    vessel = VesselPhantom(np.array([[0.0, 0.0, -30.0], [0.0, 0.0, 30.0]]), 3.0, 0.05)
+    renderer = BiplaneRenderer(views, ROBOT_1, vessel=vessel, settings=ImagingSettings.exact(1))
+    empty = BiplaneRenderer(views, None, settings=ImagingSettings.exact(1))
+    cylinder_middle = ROBOT_1.tail_offset_mm + 0.5 * (ROBOT_1.length_mm - ROBOT_1.cone_length_mm)
+    pair = renderer.render(RobotPose(np.array([0.0, 0.0, -cylinder_middle]), VERTICAL))
+    for name in views:
+        flat = empty.expected_photons(name)[111, 127]
+        mu_l = -math.log(renderer.to_photons(pair.images[name])[111, 127] / flat)
+        # Through the axis: 2 mm of robot and the 6 mm lumen minus the robot's 2 mm of contrast.
+        assert mu_l == pytest.approx(1.0 * 2.0 + 0.05 * (6.0 - 2.0), rel=2e-3)
+
+
+def test_several_vessels_attenuate_together() -> None:
+    views = biplane_views(**SMALL)
+    a = VesselPhantom(np.array([[-30.0, 0.0, -5.0], [30.0, 0.0, 5.0]]), 2.0, 0.05)
+    b = VesselPhantom(np.array([[0.0, -30.0, 8.0], [2.0, 0.0, 0.0], [0.0, 30.0, -8.0]]), 2.5, 0.04)
+    exact = ImagingSettings.exact(1)
+    both = BiplaneRenderer(views, None, vessel=[a, b], settings=exact)
+    only = [BiplaneRenderer(views, None, vessel=v, settings=exact) for v in (a, b)]
+    flat = BiplaneRenderer(views, None, settings=exact)
+    for name in views:
+        t_a, t_b = (r.expected_photons(name) / flat.expected_photons(name) for r in only)
+        assert t_a.min() < 0.9 and t_b.min() < 0.9                    # both are visible
+        np.testing.assert_allclose(both.expected_photons(name) / flat.expected_photons(name),
+                                   t_a * t_b, rtol=1e-6)
+
+
 def test_robot_is_darker_than_its_surroundings_in_a_vessel() -> None:
     views = biplane_views(**SMALL)
     t = np.linspace(-1, 1, 12)
