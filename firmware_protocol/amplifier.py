@@ -426,6 +426,7 @@ def seq_newer(seq: int, than: int) -> bool:
 __all__ = [
     "PROTOCOL_VERSION", "MAX_CHANNELS", "MsgType", "State", "Fault", "NakReason", "Hello", "Enable", "Disable",
     "Heartbeat", "GetStatus", "ClearFault", "SetCurrents", "ConfigureLimits", "HelloReply", "SetCurrentsReply",
-    "Status", "Ack", "Nak", "Message", "REQUESTS", "REPLIES", "MESSAGE_CLASSES", "PayloadError", "UnknownTypeError", "encode_payload",
-    "encode_message", "decode_payload", "Envelope", "MessageDecoder", "seq_newer", "MESSAGE_REJECT_REASONS",
+    "Status", "Ack", "Nak", "Message", "REQUESTS", "REPLIES", "MESSAGE_CLASSES", "PayloadError",
+    "UnknownTypeError", "encode_payload", "encode_message", "decode_payload", "Envelope", "MessageDecoder",
+    "seq_newer", "MESSAGE_REJECT_REASONS",
 ]

@@ -46,14 +46,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--baud", type=int, default=115200, help="line rate for RS-232/485 adapters (default 115200)")
 
 
-def _print_status(status: "AmplifierStatus", out=sys.stdout) -> None:
-    faults = "NONE" if not status.faults else "|".join(f.name for f in type(status.faults) if f and f in status.faults)
-    print(f"state {status.state.name}   faults {faults}"
-          f"   uptime {status.uptime_s:.1f} s", file=out)
-    print("  ch   setpoint_a   measured_a   temperature_c", file=out)
+def _fault_names(faults: int) -> str:
+    from firmware_protocol.amplifier import Fault
+
+    names = [flag.name for flag in Fault if flag and flag.name and faults & flag]
+    return "|".join(names) or "NONE"
+
+
+def _print_status(status: "AmplifierStatus") -> None:
+    print(f"state {status.state.name}   faults {_fault_names(status.faults)}   uptime {status.uptime_s:.1f} s")
+    print("  ch   setpoint_a   measured_a   temperature_c")
     for c, (sp, meas, temp) in enumerate(zip(status.setpoint_a, status.measured_a, status.temperature_c)):
-        print(f"  {c:2d}   {sp:10.3f}   {meas:10.3f}   {temp:13.1f}", file=out)
-    out.flush()
+        print(f"  {c:2d}   {sp:10.3f}   {meas:10.3f}   {temp:13.1f}")
+    sys.stdout.flush()
 
 
 def _hold(amp: "Amplifier", seconds: float, every: float) -> None:
@@ -80,7 +85,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         info = amp.info
         version = ".".join(str(v) for v in info.firmware_version)
-        print(f"amplifier on {args.port}: {info.channels} channels, firmware {version}, serial 0x{info.serial_number:08X},"
+        print(f"amplifier on {args.port}: {info.channels} channels, firmware {version},"
+              f" serial 0x{info.serial_number:08X},"
               f" limits {max(info.limits.max_current_a):g} A, {max(info.limits.slew_a_per_s):g} A/s,"
               f" watchdog {info.limits.watchdog_ms} ms")
         if args.action == "status":
@@ -95,7 +101,8 @@ def run(args: argparse.Namespace) -> int:
             print("output ramped to zero and disabled" if safe else "output disabled (zero not confirmed)")
             return 0 if safe else 1
         if args.action == "set" and len(args.currents) != info.channels:
-            raise ApplianceError(f"--currents has {len(args.currents)} values; the amplifier has {info.channels} channels")
+            raise ApplianceError(
+                f"--currents has {len(args.currents)} values; the amplifier has {info.channels} channels")
         amp.enable()
         if args.action == "set":
             target = np.asarray(args.currents, dtype=float)

@@ -97,7 +97,7 @@ def test_cobs_round_trip_and_no_zero(data: bytes) -> None:
 
 
 @given(messages(), u16)
-@settings(max_examples=400)
+@settings(max_examples=200)
 def test_every_message_round_trips_through_the_stream_decoder(message, seq: int) -> None:
     wire = encode_message(message, seq)
     assert wire[0] == 0 and wire[-1] == 0 and 0 not in wire[1:-1]
