@@ -58,15 +58,15 @@ def choose_pairing(F: np.ndarray, tips_p: np.ndarray, tips_q: np.ndarray, ambigu
 
 def pair_candidates(calibration: Calibration, F: np.ndarray, centroids_p: Sequence[tuple[float, float]],
                     centroids_q: Sequence[tuple[float, float]], strengths_p: Sequence[float],
-                    strengths_q: Sequence[float], band_px: float) -> tuple[int, int, float] | None:
-    """The pair of candidates (index in p, index in q, epipolar distance) that is most likely the robot.
+                    strengths_q: Sequence[float], band_px: float, limit: int = 4) -> list[tuple[int, int, float]]:
+    """Candidate pairs (index in p, index in q, epipolar distance) that may be the robot, likeliest first.
 
     Pairs whose centroids are farther than ``band_px`` from each other's epipolar lines cannot be the
-    same object; among the others the strongest absorber (relative to each view's strongest) wins, and
-    a tie goes to the smaller epipolar distance.
+    same object; the others are ranked by strength (each view's absorbers relative to its strongest),
+    ties going to the smaller epipolar distance. The caller checks the first few in full.
     """
     if not centroids_p or not centroids_q:
-        return None
+        return []
     cp = calibration.p.undistort_points(np.asarray(centroids_p, dtype=np.float64))
     cq = calibration.q.undistort_points(np.asarray(centroids_q, dtype=np.float64))
     i, j = np.meshgrid(np.arange(len(cp)), np.arange(len(cq)), indexing="ij")
@@ -75,7 +75,6 @@ def pair_candidates(calibration: Calibration, F: np.ndarray, centroids_p: Sequen
     sq = np.asarray(strengths_q, dtype=np.float64) / max(max(strengths_q), 1e-12)
     score = sp[:, None] + sq[None, :] - 0.01 * d / band_px
     score[d > band_px] = -np.inf
-    best = np.unravel_index(int(np.argmax(score)), score.shape)
-    if not np.isfinite(score[best]):
-        return None
-    return int(best[0]), int(best[1]), float(d[best])
+    order = np.argsort(-score, axis=None)[:limit]
+    pairs = [np.unravel_index(int(k), score.shape) for k in order]
+    return [(int(a), int(b), float(d[a, b])) for a, b in pairs if np.isfinite(score[a, b])]

@@ -61,6 +61,8 @@ class RecognitionSettings(StrictModel):
     # -- correspondence and reconstruction ------------------------------------------------------------
     #: Two views' blobs pair up only if their centroids are within this epipolar distance (px).
     epipolar_band_px: float = Field(6.0, gt=0)
+    #: The tips of the better pairing must be within this RMS epipolar distance (px), or the frame is lost.
+    tips_band_px: float = Field(12.0, gt=0)
     #: Pairings A/B are "clearly separated" when the worse RMS epipolar distance exceeds the better by
     #: this many pixels; otherwise the frame is ambiguous.
     ambiguity_px: float = Field(3.0, gt=0)

@@ -19,8 +19,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from appliance.errors import InputDataError
-from appliance.geometry import Calibration, fundamental_matrix
-from appliance.recognition.correspondence import pair_candidates
+from appliance.geometry import Calibration, epipolar_distance_px, fundamental_matrix
+from appliance.recognition.correspondence import pair_candidates, pairing_rms
 from appliance.recognition.features import Features2D, features
 from appliance.recognition.posture import Posture, ViewObservation
 from appliance.recognition.reconstruction import Reconstruction, reconstruct
@@ -94,6 +94,21 @@ class PostureTracker:
             posture.timings_us = timings
             return posture
         timings["triangulation"] = (time.perf_counter_ns() - start) / 1e3
+        mismatch = self._centroid_mismatch_px(feats)
+        tips_rms = min(rec.pairing.rms_a_px, rec.pairing.rms_b_px)
+        failure = None
+        if mismatch > self.settings.epipolar_band_px:
+            failure = (f"the robot images of the two views do not correspond (centroids {mismatch:.1f} px from "
+                       f"each other's epipolar lines)")
+        elif tips_rms > self.settings.tips_band_px:
+            failure = (f"the robot images' ends do not correspond in either pairing (RMS epipolar distance "
+                       f"{tips_rms:.1f} px); one view's blob is not (only) the robot")
+        if failure is not None:
+            # The two blobs are not images of one object: reporting a pose would be inventing one.
+            self._lose()
+            posture = Posture.lost(frame, t, failure)
+            posture.timings_us = timings
+            return posture
         posture = self._posture(frame, t, rec, blobs)
         posture.timings_us = timings
         self._remember(posture)
@@ -158,20 +173,38 @@ class PostureTracker:
         if missing:
             return None, f"no robot-like object in view {' and '.join(missing)}"
         start = time.perf_counter_ns()
-        pick = pair_candidates(self.calibration, self.F,
-                               [b.centroid_px for b in candidates["p"]], [b.centroid_px for b in candidates["q"]],
-                               [b.strength for b in candidates["p"]], [b.strength for b in candidates["q"]],
-                               self.settings.epipolar_band_px)
+        pairs = pair_candidates(self.calibration, self.F,
+                                [b.centroid_px for b in candidates["p"]], [b.centroid_px for b in candidates["q"]],
+                                [b.strength for b in candidates["p"]], [b.strength for b in candidates["q"]],
+                                self.settings.epipolar_band_px)
         timings["correspondence"] += (time.perf_counter_ns() - start) / 1e3
-        if pick is None:
+        if not pairs:
             return None, (f"no pair of candidates satisfies the epipolar constraint within "
                           f"{self.settings.epipolar_band_px:g} px ({len(candidates['p'])} in p, "
                           f"{len(candidates['q'])} in q)")
-        blobs = {"p": candidates["p"][pick[0]], "q": candidates["q"][pick[1]]}
+        # Several pairs may pass the centroid test (a vessel end-on in one view, say); the robot's
+        # tips must pair up along epipolar lines too, which a chance coincidence of centroids does not.
         start = time.perf_counter_ns()
-        feats = {name: self._features(blobs[name]) for name in VIEWS}
+        best: tuple[float, dict[str, Blob], dict[str, Features2D]] | None = None
+        for i, j, distance in pairs:
+            blobs = {"p": candidates["p"][i], "q": candidates["q"][j]}
+            feats = {name: self._features(blobs[name]) for name in VIEWS}
+            if len(pairs) == 1:
+                best = (0.0, blobs, feats)
+                break
+            rms = pairing_rms(self.F, self.calibration.p.undistort_points(feats["p"].tips),
+                              self.calibration.q.undistort_points(feats["q"].tips))
+            cost = min(rms) + distance
+            if best is None or cost < best[0]:
+                best = (cost, blobs, feats)
         timings["features"] += (time.perf_counter_ns() - start) / 1e3
-        return (blobs, feats), ""
+        assert best is not None
+        return (best[1], best[2]), ""
+
+    def _centroid_mismatch_px(self, feats: dict[str, Features2D]) -> float:
+        cp = self.calibration.p.undistort_points(feats["p"].centroid)
+        cq = self.calibration.q.undistort_points(feats["q"].centroid)
+        return float(epipolar_distance_px(self.F, cp, cq)[0])
 
     # ------------------------------------------------------------------------------------ results
     def _posture(self, frame: int, t: float, rec: Reconstruction, blobs: dict[str, Blob]) -> Posture:
