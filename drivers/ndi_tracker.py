@@ -18,6 +18,7 @@ LinkLostError.
 from __future__ import annotations
 
 import logging
+import struct
 import threading
 import time
 from collections.abc import Callable
@@ -54,6 +55,13 @@ from firmware_protocol.ndi_replies import (
     decode_tx_text,
     reply_is_binary,
 )
+
+try:  # POSIX only; elsewhere socket replies are read a byte at a time, which is slower but correct
+    import fcntl
+    import termios
+    _FIONREAD: int | None = termios.FIONREAD
+except ImportError:  # pragma: no cover - Windows
+    _FIONREAD = None
 
 log = logging.getLogger(__name__)
 
@@ -343,7 +351,7 @@ class NDITracker:
         while not data.endswith(CR):
             if time.monotonic() > deadline:
                 raise DeviceTimeoutError(self._silence(label, data))
-            data += self._io_call(self.port.read, max(1, int(self._io_call(lambda: self.port.in_waiting))))  # type: ignore[operator, arg-type]
+            data += self._io_call(self.port.read, max(1, self._available()))  # type: ignore[operator]
             if len(data) > 4096:
                 raise ProtocolError(f"tracker at {self.where}: {len(data)} bytes without CR after {label}")
         log.debug("%s -> %r", self.where, bytes(data))
@@ -351,6 +359,19 @@ class NDITracker:
             return decode_reply(bytes(data))
         except FrameError as err:
             raise ProtocolError(f"tracker at {self.where}: bad reply to {label}: {err}") from err
+
+    def _available(self) -> int:
+        """Bytes ready to read. pyserial's ``socket://`` port says only 0 or 1, which would make a TX reply
+        arrive one byte per system call; ask the socket itself for the count (FIONREAD) instead."""
+        waiting = int(self._io_call(lambda: self.port.in_waiting))  # type: ignore[call-overload]
+        sock = getattr(self.port, "_socket", None)
+        if waiting and sock is not None and _FIONREAD is not None:
+            try:
+                count = fcntl.ioctl(sock.fileno(), _FIONREAD, b"\0\0\0\0")
+                return max(waiting, struct.unpack("i", count)[0])
+            except (OSError, ValueError):
+                pass
+        return waiting
 
     def _silence(self, label: str, partial: bytearray) -> str:
         got = f" (got only {bytes(partial)[:40]!r})" if partial else ""
