@@ -115,8 +115,9 @@ class Amplifier:
             self.info = self.identify()
             self.limits = self.info.limits
             self.status()   # learn state and faults now: a previous session may have left a fault
+            self._pending_limits: AmplifierLimits | None = None
             if limits is not None:
-                self.configure_limits(limits)
+                self._configure_at_connect(limits)
         except BaseException:
             self._close_port()
             raise
@@ -141,9 +142,10 @@ class Amplifier:
         """Stop the heartbeat and close the port without touching the output (idempotent)."""
         if self._closed:
             return
-        self._closed = True
         self.stop_heartbeat()
-        self._close_port()
+        with self._io_lock:   # never pull the port from under an exchange in flight
+            self._closed = True
+            self._close_port()
 
     def shutdown(self, *, timeout_s: float | None = None) -> bool:
         """Ramp every channel to zero at the slew limit, disable the output, then close.
@@ -226,8 +228,12 @@ class Amplifier:
         self._previous_a = np.zeros(self.info.channels)
 
     def clear_fault(self) -> None:
-        """Clear latched faults; refused while the e-stop is asserted or a coil is still hot."""
+        """Clear latched faults; refused while the e-stop is asserted or a coil is still hot. Limits
+        given at connection to an amplifier that was in fault are configured now."""
         self._transact(ClearFault(), Ack)
+        if self._pending_limits is not None:
+            self.configure_limits(self._pending_limits)
+            self._pending_limits = None
 
     def heartbeat(self) -> None:
         self._transact(Heartbeat(), Ack)
@@ -406,6 +412,20 @@ class Amplifier:
                 return True
             time.sleep(step_s)
         return False
+
+    def _configure_at_connect(self, limits: AmplifierLimits) -> None:
+        # The amplifier takes limits only while DISABLED; a previous session may have left it otherwise.
+        if self._state is State.ENABLED:
+            log.warning("amplifier on %s was left enabled; disabling before configuring limits", self._name)
+            self.disable()
+        if self._state is State.FAULT:
+            # Nothing can be enabled before the fault is cleared; clear_fault() applies the limits first.
+            limits.check_against(self.info)
+            log.warning("amplifier on %s has latched faults %r; limits will be configured by clear_fault()",
+                        self._name, self._faults)
+            self._pending_limits = limits
+            return
+        self.configure_limits(limits)
 
     def _close_port(self) -> None:
         try:

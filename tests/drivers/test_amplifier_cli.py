@@ -89,3 +89,21 @@ def test_set_without_currents(served, capsys: pytest.CaptureFixture[str]) -> Non
     server, _ = served
     assert main(["amp", "set", "--port", server.path]) == 2
     assert "needs --currents" in capsys.readouterr().err
+
+
+def test_loopback_command_serves_the_default_fake_for_bench_software(capsys: pytest.CaptureFixture[str]) -> None:
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    proc = subprocess.Popen([sys.executable, "-m", "appliance", "loopback", "amp"], cwd=root,
+                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    try:
+        path = proc.stdout.readline().strip()   # first line: the pty path
+        assert path.startswith("/dev/")
+        assert main(["amp", "status", "--port", path]) == 0
+        assert "8 channels" in capsys.readouterr().out
+    finally:
+        proc.terminate()
+        proc.wait(timeout=5)

@@ -283,3 +283,19 @@ def test_host_side_limiter_keeps_direction_and_slew() -> None:
     # Target (10, -5, 0); 100 A/s over 50 ms allows 5 A on the largest step: half the way.
     assert slew_scale == pytest.approx(0.5)
     np.testing.assert_allclose(commanded, [5.0, -2.5, 0.0])
+
+
+def test_limits_given_at_connection_wait_for_clear_fault_when_the_amplifier_is_in_fault() -> None:
+    from firmware_protocol.amplifier import ClearFault, ConfigureLimits
+
+    limits = AmplifierLimits.uniform(CHANNELS, max_current_a=5.0, slew_a_per_s=100.0, watchdog_ms=150)
+    script = connect(State.FAULT)
+    script[1] = (script[1][0], encode_message(status(State.FAULT, Fault.WATCHDOG), 2))
+    script += [(encode_message(ClearFault(), 3), ack(MsgType.CLEAR_FAULT, 3, State.DISABLED)),
+               (encode_message(ConfigureLimits(150, (5000,) * CHANNELS, (100000,) * CHANNELS), 4),
+                ack(MsgType.CONFIGURE_LIMITS, 4, State.DISABLED))]
+    amp, port = open_amp(script, limits=limits)
+    assert amp.limits != limits and amp.faults == Fault.WATCHDOG
+    amp.clear_fault()
+    assert amp.limits == limits
+    port.assert_done()
