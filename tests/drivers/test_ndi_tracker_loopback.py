@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.errors import DeviceTimeoutError
+from drivers.errors import DeviceTimeoutError, LinkLostError, ProtocolError
 from drivers.loopback.ots_fake import FixedPose, NdiTrackerFake, NoiseModel, synthetic_rom
 from drivers.loopback.serve import PtyServer, TcpServer
 from drivers.ndi_tracker import NDITracker, ToolSample
@@ -132,6 +132,40 @@ def test_unplugged_link_is_a_timeout(loopback: Target, rom_file: Path) -> None:
                 ndi.version()
         finally:
             loopback.server.unplugged.clear()
+
+
+def test_corrupted_reply_is_a_protocol_error_and_the_next_frame_reads(loopback: Target, rom_file: Path) -> None:
+    damaged = []
+
+    def flip_one_digit(data: bytes, direction: str) -> bytes:
+        if direction == "to_host" and data[:1] != b"\xc4" and len(data) > 40 and not damaged:
+            damaged.append(data)
+            return data[:10] + bytes([data[10] ^ 0x01]) + data[11:]     # a TX digit changes, the CRC does not
+        return data
+
+    with open_tracker(loopback.url) as ndi:
+        ndi.connect()
+        ndi.load_tool(rom_file)
+        ndi.start()
+        loopback.server.link_filter = flip_one_digit
+        try:
+            with pytest.raises(ProtocolError, match="CRC .* given, .* computed"):
+                ndi.read_frame("tx")
+        finally:
+            loopback.server.link_filter = None
+        assert damaged and not ndi.read_frame("tx")[0].missing
+
+
+def test_peer_closing_the_connection_is_link_lost(rom_file: Path) -> None:
+    server = TcpServer(NdiTrackerFake(FixedPose(SET_QUATERNION, SET_POSITION)))
+    ndi = open_tracker(server.address)
+    try:
+        ndi.connect()
+        server.close()              # the tracker goes away: its end of the connection closes
+        with pytest.raises(LinkLostError, match="link to the tracker at socket://127.0.0.1:"):
+            ndi.version()
+    finally:
+        ndi.close()
 
 
 @pytest.mark.hardware
