@@ -62,6 +62,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--square-pixels", action="store_true", help="force fx = fy")
     parser.add_argument("--bead-tolerance", type=float, default=0.0, metavar="MM",
                         help="jointly refine both views and the beads within this tolerance (default 0: beads exact)")
+    parser.add_argument("--plate-p", type=Path, metavar="IMG",
+                        help="image-intensifier view p: image of a perforated plate; its distortion map is fitted, "
+                             "saved next to --out and applied to the bead centres")
+    parser.add_argument("--plate-q", type=Path, metavar="IMG", help="the same for view q")
     parser.add_argument("--max-bead-radius-px", type=float, default=15.0, metavar="PX",
                         help="largest bead radius in the images (default 15)")
 
@@ -118,11 +122,23 @@ def run(args: argparse.Namespace) -> int:
     elif args.initial_mayacam:
         initial = import_calibration(*args.initial_mayacam)
     references = {"p": dict(args.ref_p), "q": dict(args.ref_q)}
+    corrections = {}
+    correction_files = {}
+    for name, plate in (("p", args.plate_p), ("q", args.plate_q)):
+        if plate is not None:
+            from appliance.xray_calibration.distortion import correction_from_image
+            say(f"view {name}: fitting the image-intensifier distortion map from {plate}")
+            corrections[name] = correction_from_image(read_image(plate))
+            correction_files[name] = str(corrections[name].save(args.out.with_name(f"{args.out.stem}_distortion_{name}.yaml")))
     options = CubeOptions(distortion=args.distortion, square_pixels=args.square_pixels,
                           max_radius_px=args.max_bead_radius_px, bead_tolerance_mm=args.bead_tolerance,
                           focal_guess_px=args.focal_px)
-    result = calibrate_cube(images, phantom, initial=initial, references=references, options=options, progress=say)
-    extra = {"images": {"p": str(args.p), "q": str(args.q)}}
+    result = calibrate_cube(images, phantom, initial=initial, references=references, options=options, progress=say,
+                            corrections=corrections)
+    extra: dict[str, Any] = {"images": {"p": str(args.p), "q": str(args.q)}}
+    if correction_files:
+        # The views are pinhole views of corrected pixels: trackers must apply these maps first.
+        extra["point_correction"] = correction_files
     if phantom.references:
         extra["phantom_references"] = dict(phantom.references)
     calibration = to_calibration(result, extra)

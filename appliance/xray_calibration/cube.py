@@ -17,7 +17,7 @@ from __future__ import annotations
 import datetime as _dt
 import logging
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -26,6 +26,7 @@ from appliance.errors import CalibrationError
 from appliance.geometry import Calibration, View, triangulate
 from appliance.xray_calibration.beads import BeadDetections, detect_beads
 from appliance.xray_calibration.correspond import Matches, match_beads, projector_from_references
+from appliance.xray_calibration.distortion import GridCorrection
 from appliance.xray_calibration.dlt import decompose
 from appliance.xray_calibration.phantom import Phantom
 from appliance.xray_calibration.refine import ViewFit, refine_jointly, refine_view
@@ -121,11 +122,15 @@ def _dlt_fit(name: str, phantom: Phantom, detections: BeadDetections, matches: M
 def calibrate_cube(images: Mapping[str, np.ndarray], phantom: Phantom, *,
                    initial: Calibration | None = None,
                    references: Mapping[str, Mapping[str, tuple[float, float]]] | None = None,
-                   options: CubeOptions = CubeOptions(), progress: Progress | None = None) -> CubeResult:
+                   options: CubeOptions = CubeOptions(), progress: Progress | None = None,
+                   corrections: Mapping[str, GridCorrection] | None = None) -> CubeResult:
     """Calibrate views ``p`` and ``q`` from phantom images.
 
     ``initial`` (a rough calibration) or ``references`` (per view: bead id -> marked pixel) provides the
     correspondence; one of them is needed for each view (``references`` wins where both are given).
+    ``corrections`` (per view, an image-intensifier map from a perforated plate) are applied to the
+    detected bead centres first; the views are then pinhole views of corrected pixels, and the same
+    map must be applied to every point measured in that view's images later.
     """
     say = progress or (lambda message: log.info("%s", message))
     phantom.check_for_dlt()
@@ -142,6 +147,9 @@ def calibrate_cube(images: Mapping[str, np.ndarray], phantom: Phantom, *,
         say(f"view {name}: detecting beads in {image_size[0]}x{image_size[1]} image")
         found = detect_beads(image, min_radius_px=options.min_radius_px, max_radius_px=options.max_radius_px,
                              bright=phantom.bright_beads, what=f"view {name} image")
+        if corrections and name in corrections:
+            found = replace(found, uv=corrections[name].apply(found.uv),
+                            rejected_uv=corrections[name].apply(found.rejected_uv))
         detections[name] = found
         marked = references.get(name) or {}
         if marked:
