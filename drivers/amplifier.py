@@ -16,6 +16,16 @@ A background thread sends HEARTBEAT when the link has been quiet for ``heartbeat
 a quarter of the amplifier's watchdog). Faults come back as exceptions from the call that met them
 (:class:`AmplifierFaultError` subclasses carrying the flags) and as :class:`AmplifierEvent` to
 listeners registered with :meth:`Amplifier.add_listener`, also when only the heartbeat saw them.
+
+Typical use::
+
+    limits = AmplifierLimits.uniform(8, max_current_a=10.0, slew_a_per_s=200.0, watchdog_ms=200)
+    with Amplifier(open_serial("/dev/ttyACM0"), limits=limits) as amp:   # HELLO, status, limits
+        amp.add_listener(on_amplifier_event)
+        amp.enable()
+        while running:
+            result = amp.set_currents(currents_a)     # SetResult: commanded, scales, measured
+    # leaving the block ramps to zero at the slew limit, disables the output and closes the port
 """
 from __future__ import annotations
 
@@ -43,7 +53,7 @@ from drivers.amplifier_types import (
     fault_error,
     limit_currents,
 )
-from drivers.errors import DeviceTimeoutError, LinkLostError, ProtocolError
+from drivers.errors import DeviceError, DeviceTimeoutError, LinkLostError, ProtocolError
 from firmware_protocol.amplifier import (
     Ack,
     ClearFault,
@@ -156,18 +166,27 @@ class Amplifier:
         if self._closed:
             return False
         safe = False
+        deferred: list[Exception] = []   # not device errors (a listener's, a bug): raised once safe
         try:
             safe = self._ramp_to_zero(timeout_s)
         except AmplifierFaultError as err:
             log.warning("shutdown: amplifier in fault (%s); its own protection owns the output", err)
-        except (DeviceTimeoutError, LinkLostError, ProtocolError) as err:
+        except DeviceError as err:
             log.error("shutdown: could not ramp down: %s", err)
+        except Exception as err:  # noqa: BLE001 - the output is made safe first, then this is raised
+            deferred.append(err)
         try:
             self.disable()
-        except Exception as err:  # noqa: BLE001 - closing must happen whatever the device says
+        except DeviceError as err:
             log.error("shutdown: could not disable the output: %s", err)
             safe = False
-        self.close()
+        except Exception as err:  # noqa: BLE001
+            deferred.append(err)
+            safe = False
+        finally:
+            self.close()
+        if deferred:
+            raise deferred[0]
         return safe
 
     def stop_heartbeat(self) -> None:
@@ -295,9 +314,11 @@ class Amplifier:
                     f"amplifier on {self._name} did not answer {request.TYPE.name} (seq {seq}) within "
                     f"{attempts} x {self.ack_timeout_s * 1000:.0f} ms: is it powered and on this port?")
             self._last_exchange = self._clock()
-        self._link_state(True, "")
-        if isinstance(reply, (Ack, Nak, SetCurrentsReply, Status)):
-            self._observe(reply.state, reply.faults)
+            # Under the lock, so the heartbeat and the owner see state changes in reply order and
+            # each fault is announced once.
+            self._link_state(True, "")
+            if isinstance(reply, (Ack, Nak, SetCurrentsReply, Status)):
+                self._observe(reply.state, reply.faults)
         if isinstance(reply, Nak):
             if reply.request_type != request.TYPE:
                 raise ProtocolError(f"NAK for message type {reply.request_type} answers {request.TYPE.name}")
