@@ -147,23 +147,26 @@ class NDITracker:
         ``free_all_handles`` the port handles a previous session left allocated are freed, so that
         frames hold only the tools this session loads; otherwise only those the tracker marks to free.
         """
-        if not self.network:
+        if self.network:
+            self._init(self.reply_timeout_s)     # no break over TCP: the tracker must answer
+        else:
             CommSettings(baudrate).encode_params()      # an unsupported speed fails before any byte is sent
-            self.port.baudrate = POWER_ON_BAUD
-        if reset and not self.network:
-            self._break_and_reset(reset_timeout_s)
-        try:
-            self._init(probe_timeout_s)
-        except (DeviceTimeoutError, ProtocolError) as first:
-            if self.network or reset:
-                raise
-            log.info("%s: no answer to INIT (%s); sending a serial break", self.where, first)
-            self._break_and_reset(reset_timeout_s)
-            self._init(probe_timeout_s)
-        if not self.network and baudrate != POWER_ON_BAUD:
-            self.command("COMM", CommSettings(baudrate).encode_params())
-            time.sleep(0.1)    # the tracker switches 100 ms after OKAY has left it
-            self.port.baudrate = baudrate
+            self._set_baud(POWER_ON_BAUD)
+            if reset:
+                self._break_and_reset(reset_timeout_s)
+            try:
+                # Short: a tracker left at another speed by an earlier session hears only noise.
+                self._init(probe_timeout_s if not reset else self.reply_timeout_s)
+            except (DeviceTimeoutError, ProtocolError) as first:
+                if reset:
+                    raise
+                log.info("%s: no answer to INIT (%s); sending a serial break", self.where, first)
+                self._break_and_reset(reset_timeout_s)
+                self._init(self.reply_timeout_s)
+            if baudrate != POWER_ON_BAUD:
+                self.command("COMM", CommSettings(baudrate).encode_params())
+                time.sleep(0.1)    # the tracker switches 100 ms after OKAY has left it
+                self._set_baud(baudrate)
         self.free_handles(all_allocated=free_all_handles)
         log.info("%s: tracker initialised%s", self.where, "" if self.network else f" at {self.port.baudrate} baud")
 
@@ -174,7 +177,7 @@ class NDITracker:
         with self._io:
             self._flush_input()
             self._io_call(self.port.send_break, 0.25)
-            self.port.baudrate = POWER_ON_BAUD
+            self._set_baud(POWER_ON_BAUD)
             reply = self._read_text(time.monotonic() + timeout_s, "serial break")
         if reply != "RESET":
             raise ProtocolError(f"tracker at {self.where} answered {reply!r} to a serial break instead of RESET")
@@ -330,6 +333,9 @@ class NDITracker:
             raise DeviceTimeoutError(f"writing to the tracker at {self.where} timed out") from err
         except (serial.SerialException, OSError) as err:
             raise LinkLostError(f"link to the tracker at {self.where} lost: {err}") from err
+
+    def _set_baud(self, baudrate: int) -> None:
+        self._io_call(setattr, self.port, "baudrate", baudrate)
 
     def _flush_input(self) -> None:
         # A tracker never speaks unprompted; anything waiting is the tail of an abandoned reply.
