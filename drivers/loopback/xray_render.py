@@ -97,6 +97,7 @@ class ViewTruth:
     in_view: bool = True             # some of the shadow falls on the detector
     fully_in_view: bool = True       # none of the shadow falls off the detector
     area_px: float = 0.0             # the shadow's area on the detector, in pixels (sum of coverage)
+    coverage: np.ndarray | None = None   # (bbox h, bbox w) fraction of each pixel the shadow covers
 
 
 @dataclass(frozen=True)
@@ -358,10 +359,12 @@ class BiplaneRenderer:
         # The shadow touches the image border only if clipping cut it.
         touches = (shadow_bbox[0] == 0 or shadow_bbox[1] == 0 or shadow_bbox[2] == state.w
                    or shadow_bbox[3] == state.h)
+        crop = coverage[rows.min():rows.max() + 1, cols.min():cols.max() + 1].astype(np.float32)
+        crop.setflags(write=False)
         truth = ViewTruth(centroid_px=marks[0], head_px=marks[1], tail_px=marks[2],
                           pixel_count=_half_covered(coverage, bbox), bbox=shadow_bbox,
                           in_view=True, fully_in_view=not (clipped and touches),
-                          area_px=float(coverage.sum()))
+                          area_px=float(coverage.sum()), coverage=crop)
         return truth, (bbox, transmission.astype(np.float32))
 
     def _displaced_mu(self, pose: RobotPose) -> float:

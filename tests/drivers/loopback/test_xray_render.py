@@ -7,6 +7,8 @@ import math
 import cv2
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from appliance.robots import load_robots
 from drivers.loopback.xray_render import (
@@ -101,6 +103,40 @@ def test_chords_integrate_to_the_volume(dims) -> None:
         assert chords.sum() * cell == pytest.approx(body.volume_mm3, rel=2e-3), direction
 
 
+unit_vectors = st.tuples(*[st.floats(-1, 1)] * 3).filter(lambda v: 0.1 < np.linalg.norm(v))
+
+
+@settings(max_examples=200, deadline=None)
+@given(axis=unit_vectors, ray=unit_vectors, length=st.floats(1.0, 40.0), diameter=st.floats(0.3, 6.0),
+       angle=st.floats(5.0, 89.0))
+def test_chord_through_the_centroid_is_inside_and_the_same_both_ways(axis, ray, length, diameter,
+                                                                    angle) -> None:
+    """The centroid is inside the convex body: any line through it cuts a chord no longer than the
+    body's diameter, and the same chord whichever side the source is on."""
+    body = RobotBody(length, diameter, angle, attenuation_per_mm=1.0)
+    pose = RobotPose(np.zeros(3), np.array(axis))
+    d = np.array(ray) / np.linalg.norm(ray)
+    there = robot_chords(body, pose, -300.0 * d, d[None, :])[0]
+    back = robot_chords(body, pose, 300.0 * d, -d[None, :])[0]
+    assert 0.0 < there <= math.hypot(length, diameter) + 1e-6
+    # 0.1 um: a ray along the axis grazes the apex, a double root known only to sqrt(round-off).
+    assert there == pytest.approx(back, abs=1e-4)
+
+
+def test_axis_pointing_at_the_source_gives_the_whole_length() -> None:
+    source = np.array([-500.0, 0.0, 0.0])
+    rng = np.random.default_rng(12)
+    for _ in range(5):
+        centroid = rng.uniform(-20, 20, 3)
+        for sign in (1.0, -1.0):   # head toward the source, then tail toward it
+            axis = sign * (centroid - source) / np.linalg.norm(centroid - source)
+            pose = RobotPose(centroid, axis)
+            ray = (centroid - source) / np.linalg.norm(centroid - source)
+            # (to 0.1 um: the ray grazes the apex, where the cone's discriminant is round-off)
+            assert robot_chords(ROBOT_1, pose, source, ray[None, :])[0] == \
+                pytest.approx(ROBOT_1.length_mm, abs=1e-4)
+
+
 def test_broadside_chords_through_cylinder_and_cone() -> None:
     body = ROBOT_1
     # Axis along world z, centroid at the origin, rays along +x through points on the axis.
@@ -163,6 +199,42 @@ def test_attenuation_integral_matches_volume(supersample: int, mu: float, rel: f
             assert measured == pytest.approx(expected, rel=rel)
             if rel > 0.05:
                 assert measured < expected
+
+
+def test_attenuation_weighted_centroid_is_the_projected_volume_centroid() -> None:
+    """What the recognition relies on: moments of -log(I/I0) land on the projected 3D centroid
+    (a binary silhouette's centroid would not, for a cone-tipped body), with lens distortion."""
+    views = biplane_views(dist=(-0.3, 0.1, 0.002, -0.002, 0.0), **SMALL)
+    renderer = BiplaneRenderer(views, ROBOT_1, settings=ImagingSettings.exact())
+    rng = np.random.default_rng(13)
+    poses = [RobotPose(rng.uniform(-12, 12, 3), random_unit(rng)) for _ in range(4)]
+    poses.append(RobotPose(np.array([2.0, -1.0, 1.0]), np.array([0.3, 0.3, 1.0])))  # broadside
+    # Broadside, the silhouette's centroid lies this far (mm) headward of the volume's.
+    cyl, cone, d = ROBOT_1.length_mm - ROBOT_1.cone_length_mm, ROBOT_1.cone_length_mm, 2.0
+    area_centroid = (d * cyl * cyl / 2 + d * cone / 2 * (cyl + cone / 3)) / (d * cyl + d * cone / 2)
+    shift_mm = area_centroid - ROBOT_1.centroid_from_tail_mm
+    px_per_mm = views["p"].K[0, 0] / 500.0
+    broadside_seen = 0
+    for pose in poses:
+        pair = renderer.render(pose)
+        for name in views:
+            truth = pair.truth[name]
+            weight = attenuation_image(renderer, pair, name)
+            weight[weight < 1e-3] = 0.0            # quantisation of the 16-bit background
+            v, u = np.mgrid[0:weight.shape[0], 0:weight.shape[1]]
+            centroid = np.array([(weight * u).sum(), (weight * v).sum()]) / weight.sum()
+            assert np.linalg.norm(centroid - truth.centroid_px) < 0.1
+            seen = np.linalg.norm(truth.head_px - truth.tail_px) / (ROBOT_1.length_mm * px_per_mm)
+            if seen > 0.9:                          # nearly broadside: the cone's effect shows
+                x0, y0, x1, y1 = truth.bbox
+                silhouette = np.zeros_like(weight)
+                silhouette[y0:y1, x0:x1] = truth.coverage
+                binary = np.array([(silhouette * u).sum(), (silhouette * v).sum()]) / silhouette.sum()
+                axis = (truth.head_px - truth.tail_px) / np.linalg.norm(truth.head_px - truth.tail_px)
+                # Tilted out of the image plane the end faces add to the silhouette: half is safe.
+                assert (binary - truth.centroid_px) @ axis > 0.5 * shift_mm * seen * px_per_mm
+                broadside_seen += 1
+    assert broadside_seen >= 2
 
 
 def test_measured_path_length_at_the_cylinder_middle_is_the_diameter() -> None:
