@@ -82,6 +82,7 @@ def run(args: argparse.Namespace) -> int:
         raise ApplianceError("amp set needs --currents A,B,... (one value per channel, amperes)")
     port = open_serial(args.port, baudrate=args.baud, timeout=args.timeout)
     amp = Amplifier(port, ack_timeout_s=args.timeout)
+    enabled = False
     try:
         info = amp.info
         version = ".".join(str(v) for v in info.firmware_version)
@@ -103,6 +104,7 @@ def run(args: argparse.Namespace) -> int:
         if args.action == "set" and len(args.currents) != info.channels:
             raise ApplianceError(
                 f"--currents has {len(args.currents)} values; the amplifier has {info.channels} channels")
+        enabled = True   # from here on, any way out ramps to zero and disables (see finally)
         amp.enable()
         if args.action == "set":
             target = np.asarray(args.currents, dtype=float)
@@ -117,5 +119,10 @@ def run(args: argparse.Namespace) -> int:
         safe = amp.shutdown()
         print("output ramped to zero and disabled" if safe else "output disabled (zero not confirmed)")
         return 0 if safe else 1
+    except KeyboardInterrupt:
+        print("interrupted: ramping to zero", file=sys.stderr)
+        raise
     finally:
-        amp.close()   # idempotent; after an error it stops the heartbeat and frees the port
+        if enabled:
+            amp.shutdown()   # no-op when already shut down; never leaves the output on after an error
+        amp.close()          # idempotent; stops the heartbeat and frees the port

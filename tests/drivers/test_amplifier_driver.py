@@ -9,6 +9,8 @@ from collections import deque
 import numpy as np
 import pytest
 import serial
+from hypothesis import given
+from hypothesis import strategies as st
 
 from drivers.amplifier import (
     Amplifier,
@@ -299,3 +301,21 @@ def test_limits_given_at_connection_wait_for_clear_fault_when_the_amplifier_is_i
     amp.clear_fault()
     assert amp.limits == limits
     port.assert_done()
+
+
+@given(st.lists(st.floats(-100, 100), min_size=3, max_size=3), st.lists(st.floats(-10, 10), min_size=3, max_size=3),
+       st.floats(0, 0.2), st.floats(0.1, 20), st.floats(1, 1000))
+def test_host_limiter_never_exceeds_a_limit_and_keeps_the_field_direction(
+        requested, previous, dt_s, max_a, slew) -> None:
+    limits = AmplifierLimits.uniform(3, max_current_a=max_a, slew_a_per_s=slew, watchdog_ms=100)
+    requested_a, previous_a = np.array(requested), np.clip(np.array(previous), -max_a, max_a)
+    commanded, current_scale, slew_scale = limit_currents(requested_a, previous_a, dt_s, limits)
+    assert np.all(np.abs(commanded) <= max_a + 1e-9)
+    assert np.all(np.abs(commanded - previous_a) <= slew * dt_s + 1e-9)
+    assert 0 <= current_scale <= 1 and 0 <= slew_scale <= 1
+    # The target is the requested vector scaled as a whole (same direction, never clipped per channel),
+    # scaled no more than needed, and the command lies on the segment from the previous command to it.
+    target = requested_a * current_scale
+    assert np.all(np.abs(target) <= max_a * (1 + 1e-12))
+    assert current_scale == 1.0 or np.isclose(np.max(np.abs(target)), max_a)
+    np.testing.assert_allclose(commanded, previous_a + slew_scale * (target - previous_a), atol=1e-9)
