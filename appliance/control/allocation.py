@@ -39,6 +39,7 @@ class Allocation:
 
     currents_a: FloatArray
     scale: float                  # 1.0 = request fully met; < 1: the whole request was scaled by it
+                                  # ("slew-ramp": share of the request delivered, projected, in 0..1)
     limited_by: str | None        # None, "current", "power", "slew" or "slew-ramp"
     achieved_field_T: FloatArray
     achieved_force_N: FloatArray
@@ -82,10 +83,11 @@ class CurrentAllocator:
         force_unit = max(moment_norm, 1e-12) * _GRADIENT_UNIT_T_M
         a = np.vstack([b_per_amp / _FIELD_UNIT_T, f_per_amp / force_unit])
         y = np.concatenate([field_t / _FIELD_UNIT_T, force_n / force_unit])
-        if not np.any(y):
+        size = float(np.linalg.norm(y))
+        if size < 1e-12:   # below 1 pT and 1e-14 |m| T/m: nothing to do
             return np.zeros(self.model.n), 0.0, a
         currents, *_ = np.linalg.lstsq(a, y, rcond=self.rcond)
-        residual = float(np.linalg.norm(a @ currents - y) / np.linalg.norm(y))
+        residual = float(np.linalg.norm(a @ currents - y) / size)
         return currents, residual, a
 
     def allocate(self, position_mm: ArrayLike, field_T: ArrayLike, force_N: ArrayLike, moment_Am2: ArrayLike,
@@ -143,7 +145,7 @@ class CurrentAllocator:
             fraction = float(min(1.0, np.min(fractions)))
             currents = previous + fraction * step
             limited_by = "slew-ramp"
-            scale = _projection(normalised, currents, ideal)
+            scale = min(max(_projection(normalised, currents, ideal), 0.0), 1.0)
         # Rounding guard only (s was chosen so that these hold exactly in real arithmetic).
         currents = np.clip(currents, -self.max_current_a, self.max_current_a)
         achieved_field = b_per_amp @ currents
