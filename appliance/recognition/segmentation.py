@@ -31,6 +31,8 @@ _MAX_CANDIDATES = 8
 #: Rows beyond the body and neighbouring columns averaged for the background fill across the body.
 _FILL_ROWS = 3
 _FILL_COLS = 7
+#: Slices (px) over which a body's attenuation must fall beyond its core's end.
+_FADE_STEP = 4
 
 
 @dataclass(frozen=True)
@@ -225,6 +227,7 @@ def _blob_from_component(a: np.ndarray, smooth: np.ndarray, labels: np.ndarray, 
     n, sup_labels = cv2.connectedComponents(above.view(np.uint8), connectivity=8)
     keep = np.unique(sup_labels[core_w & above])
     mask = np.isin(sup_labels, keep[keep > 0]) | core_w
+    mask &= _end_limits(s_w, mask, s_w_, float(s_core.min()), float(s_core.max()), 3.0 * sigma_s * np.sqrt(2.0))
     # The support: a rectangle around the body (convex, so each column/row crosses it once).
     s_in, t_in = s_w_[mask], np.abs(t_w_[mask])
     support = ((s_w_ >= s_in.min() - pad) & (s_w_ <= s_in.max() + pad) & (np.abs(t_w_) <= t_in.max() + pad))
@@ -250,6 +253,34 @@ def _blob_from_component(a: np.ndarray, smooth: np.ndarray, labels: np.ndarray, 
                 baseline=baseline, sigma=sigma, strength=float(m["m00"]),
                 centroid_px=(window.x0 + m["m10"] / m["m00"], window.y0 + m["m01"] / m["m00"]),
                 touches_border=edge)
+
+
+def _end_limits(smooth: np.ndarray, mask: np.ndarray, s: np.ndarray, s_lo: float, s_hi: float,
+                tolerance: float) -> np.ndarray:
+    """Where the body may extend beyond its core along the axis (bool, like ``mask``).
+
+    Beyond each end of the core the body can only fade: a cone's attenuation falls steadily to its
+    apex, a flat end's within the blur. Walking outward in 1-px slices, the body ends where the
+    slice's strongest pixel stops falling (over ``_FADE_STEP`` slices, by more than ``tolerance``):
+    what continues at a steady level is something else, such as a vessel the robot touches.
+    """
+    keep = np.ones(mask.shape, dtype=bool)
+    values, positions = smooth[mask], s[mask]
+    for sign, start in ((1.0, s_hi), (-1.0, s_lo)):
+        beyond = sign * (positions - start)
+        outside = beyond > 0
+        if not outside.any():
+            continue
+        bins = np.floor(beyond[outside]).astype(np.int64)
+        peak = np.full(int(bins.max()) + 1, -np.inf)
+        np.maximum.at(peak, bins, values[outside])
+        stop = len(peak)
+        for b in range(len(peak)):
+            if not np.isfinite(peak[b]) or (b >= _FADE_STEP and peak[b] > peak[b - _FADE_STEP] - tolerance):
+                stop = b
+                break
+        keep &= sign * (s - start) < stop
+    return keep
 
 
 def _principal(sxx: float, syy: float, sxy: float, n: int) -> tuple[float, float, np.ndarray]:
