@@ -210,6 +210,16 @@ class RobotBody:
         """Tail-face centre along the axis, from the centroid (negative)."""
         return -self.centroid_from_tail_mm
 
+    @property
+    def head_body_mm(self) -> np.ndarray:
+        """The apex in the body frame (origin at the centroid, axis +z)."""
+        return np.array([0.0, 0.0, self.head_offset_mm])
+
+    @property
+    def tail_body_mm(self) -> np.ndarray:
+        """The tail face's centre in the body frame."""
+        return np.array([0.0, 0.0, self.tail_offset_mm])
+
 
 @dataclass(frozen=True)
 class RobotPose:
