@@ -81,7 +81,7 @@ log = logging.getLogger(__name__)
 __all__ = [
     "Amplifier", "AmplifierEvent", "AmplifierFaultError", "AmplifierInfo", "AmplifierLimits", "AmplifierStatus",
     "CommandRejectedError", "CurrentCommandError", "EStopError", "OverCurrentError", "OverTemperatureError",
-    "SetResult", "WatchdogError",
+    "SetResult", "WatchdogError", "Fault", "State",
 ]
 
 ReplyT = TypeVar("ReplyT", bound=Message)

@@ -120,5 +120,5 @@ def test_corrupted_link_never_applies_a_wrong_value_and_accounts_for_every_frame
     assert fake.decoder.accepted - 2 + fake.decoder.rejected_total == to_fake.segments()
     assert host.accepted - 2 + host.rejected_total == to_host.segments()
     assert fake.decoder.rejected_total > 1000 and host.rejected_total > 1000
-    assert set(fake.decoder.rejected) >= {"crc", "cobs", "truncated", "length"}
+    assert all(fake.decoder.rejected[reason] > 0 for reason in ("crc", "cobs", "truncated", "length"))
     assert fake.duplicates > 0   # lost replies made the host retransmit commands already applied
