@@ -19,6 +19,8 @@ Poses come from a pose provider, ``provider(now) -> {tool_index: (R 3x3 | quater
 None}``; tool index 0 is the first handle a client requested. A tool without a pose, or outside the
 measurement volume, is MISSING. Noise per frame: Gaussian position noise (default 0.19 mm RMS, 3D),
 small rotation noise, and a reported fit RMS; the same frame number always returns the same sample.
+Providers, the volume and the noise model live in :mod:`drivers.loopback.ots_poses`; swap
+``fake.provider`` while holding the server's lock (the current frame is then measured again).
 
 Not modelled: the tool definition's contents (markers, geometry), marker-level data (stray markers,
 3D markers, reply options 0x0002-0x1000), wired/active tools and tool-in-port events, serial break

@@ -12,8 +12,10 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 import serial
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
-from drivers.errors import DeviceTimeoutError, InputDataError, LinkLostError, ProtocolError
+from drivers.errors import DeviceError, DeviceTimeoutError, InputDataError, LinkLostError, ProtocolError
 from drivers.ndi_tracker import NdiCommandError, NDITracker
 from firmware_protocol.ndi import crc_hex, encode_error, encode_reply
 
@@ -316,3 +318,18 @@ def test_background_reader_hands_over_newest_frame_then_its_error(scripted: list
     with pytest.raises(NdiCommandError):
         ndi.latest()
     ndi.stop_streaming()
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(mode=st.sampled_from(["tx", "bx"]), junk=st.one_of(
+    st.binary(max_size=120).map(lambda raw: raw.replace(b"\r", b"") + b"\r"),
+    st.binary(max_size=120).map(lambda raw: b"\xc4\xa5" + raw),
+    st.text("0123456789ABCDEF+-MISNGDABLE\n", max_size=120).map(lambda text: encode_reply(text))))
+def test_any_reply_is_a_sample_list_or_a_device_error(mode: str, junk: bytes) -> None:
+    port = ScriptedPort([(cmd(f"{mode.upper()}:0001"), junk)])
+    ndi = NDITracker(port, reply_timeout_s=0.05)  # type: ignore[arg-type]
+    try:
+        samples = ndi.read_frame(mode)
+    except DeviceError:
+        return          # ProtocolError, NdiCommandError or a timeout on a short binary reply: all typed
+    assert all(s.missing == (s.transform is None) for s in samples)

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from drivers.loopback.ots_fake import (
     SPECTRA_BX_FIRMWARE,
@@ -222,3 +224,28 @@ def test_default_fake_pose_argument() -> None:
     assert tool.translation_mm == (1.0, 2.0, -1000.0) and tool.quaternion == (1.0, 0.0, 0.0, 0.0)
     with pytest.raises(ValueError, match="7 numbers"):
         make_default_fake((1, 2, 3))
+
+
+_command_names = st.sampled_from(["INIT", "TX", "BX", "PHRQ", "PVWR", "PINIT", "PENA", "PDIS", "PHF", "PHSR",
+                                  "TSTART", "TSTOP", "COMM", "VER", "GETINFO", "BEEP", "RESET", "XYZ"])
+_params = st.text(alphabet="0123456789ABCDEFabcdef*:. ", max_size=140)
+
+
+@settings(max_examples=120, deadline=None)
+@given(st.lists(st.one_of(st.tuples(_command_names, _params, st.booleans()),
+                          st.binary(max_size=40).map(lambda raw: raw.replace(b"\r", b"") + b"\r")), max_size=25))
+def test_any_input_gets_well_formed_replies_only(inputs: list[object]) -> None:
+    device = make_default_fake(seed=0)
+    now = 0.0
+    for item in inputs:
+        now += 0.01
+        wire = encode_command(*item[:2], with_crc=item[2]) if isinstance(item, tuple) else item
+        reply = device.feed(wire, now)
+        assert device.tick(now) == b""
+        if wire.strip(b"\r\n") == b"":
+            assert reply == b""          # a bare line end is not a command: nothing to answer
+        elif reply[:1] == b"\xc4":
+            decode_bx(reply)
+        else:
+            assert reply.endswith(b"\r") and reply.count(b"\r") == 1, reply
+            decode_reply(reply)
