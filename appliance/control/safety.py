@@ -87,8 +87,8 @@ class SafetySupervisor:
         self._t = 0.0
 
     def _enter(self, mode: Mode, reason: str) -> None:
-        if mode is self.mode and reason == self.reason:
-            return
+        if mode is self.mode:
+            return   # one event per change of mode; the reason is the one that caused it
         self.events.append(SafetyEvent(self._t, self.mode, mode, reason))
         log = logger.warning if mode in (Mode.ZERO, Mode.STOP) else logger.info
         log("safety: %s -> %s (%s)", self.mode.value, mode.value, reason)
