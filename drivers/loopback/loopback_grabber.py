@@ -90,7 +90,20 @@ class LoopbackScene:
         self._cache: OrderedDict[float, dict[str, np.ndarray]] = OrderedDict()
         self._cache_frames = cache_frames
         self._lock = threading.Lock()
+        self._origin: float | None = None
         self.renders = 0
+
+    def origin(self, clock: Callable[[], float]) -> float:
+        """The clock reading at which frame 0 was triggered: set by the first grabber to start, shared by
+        all (one trigger generator drives both planes, so equal numbers mean simultaneous exposures)."""
+        with self._lock:
+            if self._origin is None:
+                self._origin = clock()
+            return self._origin
+
+    def first_frame_after(self, elapsed_s: float) -> int:
+        """The first frame whose exposure starts at or after ``elapsed_s`` since the origin."""
+        return max(0, int(np.ceil(elapsed_s * self.rate_hz - 1e-6)))
 
     def exposure_start(self, plane: str, number: int) -> float:
         """Start of the exposure of frame ``number`` of ``plane`` on the scene clock (s)."""
@@ -145,9 +158,9 @@ class LoopbackFrameSource(FrameSource):
 
     def _open_internal(self) -> None:
         self.width, self.height = self.scene.image_size(self.plane)
-        # Device time 0 is the moment of opening: the grabber starts acquisition then.
-        self._t0 = self._clock()
-        self._next = 0
+        # Device time 0 is the shared trigger's frame 0; a grabber started later begins with the next exposure.
+        self._t0 = self.scene.origin(self._clock)
+        self._next = self.scene.first_frame_after(self._clock() - self._t0)
         self._fate.clear()
 
     def _close_internal(self) -> None:
@@ -230,6 +243,12 @@ class SceneFeed:
     @exposure_s.setter
     def exposure_s(self, value: float) -> None:
         self.scene.exposure_s = value
+
+    def origin(self, clock: Callable[[], float]) -> float:
+        return self.scene.origin(clock)
+
+    def first_frame_after(self, elapsed_s: float) -> int:
+        return self.scene.first_frame_after(elapsed_s)
 
     def frame(self, number: int) -> DeviceFrame:
         return DeviceFrame(number=number, device_time_s=self.scene.exposure_start(self.plane, number),

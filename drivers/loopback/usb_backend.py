@@ -182,8 +182,11 @@ class FakeGrabberDevice:
             if request == proto.Request.START:
                 self.streaming = True
                 self.halted = False
-                self._t0 = self._clock()
-                self._next_number = 0
+                # A feed driven by a shared trigger (both planes of one scene) sets the time origin.
+                origin = getattr(self.feed, "origin", None)
+                self._t0 = origin(self._clock) if origin is not None else self._clock()
+                first = getattr(self.feed, "first_frame_after", None)
+                self._next_number = first(self._clock() - self._t0) if first is not None and self.realtime else 0
                 self._current, self._offset = b"", 0
                 return None
             if request == proto.Request.STOP:
