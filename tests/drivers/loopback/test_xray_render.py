@@ -119,8 +119,9 @@ def test_chord_through_the_centroid_is_inside_and_the_same_both_ways(axis, ray, 
     there = robot_chords(body, pose, -300.0 * d, d[None, :])[0]
     back = robot_chords(body, pose, 300.0 * d, -d[None, :])[0]
     assert 0.0 < there <= math.hypot(length, diameter) + 1e-6
-    # 0.1 um: a ray along the axis grazes the apex, a double root known only to sqrt(round-off).
-    assert there == pytest.approx(back, abs=1e-4)
+    # 1 um: a ray along the axis grazes the apex, a double root of the cone's quadric that is
+    # known only to sqrt(round-off) x distance / cone slope (sharp cones, ~1e-4 mm at 300 mm).
+    assert there == pytest.approx(back, abs=1e-3)
 
 
 def test_axis_pointing_at_the_source_gives_the_whole_length() -> None:
