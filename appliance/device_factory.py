@@ -1,0 +1,471 @@
+"""Build every device of a session from its config: real ports on a bench, loopback fakes in simulation.
+
+This is the one production module allowed to import ``drivers.loopback``. Real kinds open real ports
+(``drivers.transport.open_serial`` for the amplifier and the optical tracker, ``open_source`` for the
+X-ray grabbers). ``kind: loopback`` builds the fakes over REAL transports - the amplifier fake and the
+NDI tracker fake each on a pseudo-terminal (or a loopback TCP port), both X-ray planes rendered from
+the simulated world and streamed through the fake pyusb backend into the real USB grabber driver (or
+the in-process loopback grabber) - and the :class:`SimBench` that ties them to one simulated world on
+one simulated clock. The appliance side (drivers, orchestrator) is the same in both cases.
+
+Clocks in simulation: the world, the fakes and the frame loop run on :class:`SimClock`, which only the
+simulation harness advances. The host drivers keep the real monotonic clock for their link timeouts
+and heartbeats (a lost reply is a real-time event on a real transport); the wall-clock loop latency is
+measured on the host as on a bench.
+"""
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+import time
+from collections import deque
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from appliance.config_io import read_yaml
+from appliance.errors import ConfigError
+from appliance.geometry import Calibration, View
+from appliance.robots import RobotSpec
+from appliance.session_config import AmplifierDevice, OtsDevice, Session
+from drivers.amplifier import Amplifier, AmplifierLimits
+from drivers.biplane_pairing import BiplanePairer, BiplaneStream
+from drivers.frame_source import FrameSource, open_source
+from drivers.ndi_tracker import NDITracker
+from drivers.transport import open_serial
+from firmware_protocol.amplifier import State
+
+log = logging.getLogger(__name__)
+
+#: USB identity of the loopback grabbers (the protocol's default VID:PID, serials XRG-P / XRG-Q).
+_LOOPBACK_USB = "usb://{vid:04x}:{pid:04x}?serial=XRG-{plane_upper}&plane={plane}"
+
+
+class SimClock:
+    """Simulated time (s), shared by the world, the fakes and the frame loop; advanced by the harness.
+
+    ``sleep`` lets a fake that polls for "time to pass" (a grabber waiting for its next exposure) wake as
+    soon as the harness advances the clock, instead of sleeping the simulated interval in real time.
+    """
+
+    def __init__(self, start_s: float = 0.0) -> None:
+        self._t = float(start_s)
+        self._cond = threading.Condition()
+
+    def __call__(self) -> float:
+        return self._t
+
+    def now(self) -> float:
+        return self._t
+
+    def advance(self, dt_s: float) -> float:
+        if not dt_s >= 0.0:
+            raise ValueError(f"simulated time only moves forward, got dt {dt_s}")
+        with self._cond:
+            self._t += dt_s
+            self._cond.notify_all()
+            return self._t
+
+    def sleep(self, seconds: float) -> None:
+        """Wait until the clock has advanced ``seconds``, or at most ``seconds`` of real time."""
+        with self._cond:
+            target = self._t + seconds
+            self._cond.wait_for(lambda: self._t >= target, timeout=max(seconds, 0.0))
+
+
+@dataclass
+class _Sample:
+    t_s: float
+    centroid_mm: np.ndarray
+    direction: np.ndarray
+
+
+class PoseHistory:
+    """The world's true pose over the last second, so a frame exposed at ``t`` shows the robot as it was then
+    (the harness runs the world ahead of the frame by the modelled loop latency)."""
+
+    def __init__(self, keep_s: float = 1.0) -> None:
+        self._samples: deque[_Sample] = deque()
+        self._keep_s = keep_s
+        self._lock = threading.Lock()
+        self.visible = True          # fault injection: False renders frames without the robot
+
+    def append(self, t_s: float, centroid_mm: np.ndarray, direction: np.ndarray) -> None:
+        with self._lock:
+            self._samples.append(_Sample(t_s, centroid_mm.copy(), direction.copy()))
+            while len(self._samples) > 2 and self._samples[1].t_s < t_s - self._keep_s:
+                self._samples.popleft()
+
+    def at(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """(centroid, unit direction) at ``t_s``, interpolated; held at the ends of the history."""
+        with self._lock:
+            samples = list(self._samples)
+        if not samples:
+            raise RuntimeError("pose history is empty")
+        if t_s <= samples[0].t_s:
+            return samples[0].centroid_mm, samples[0].direction
+        for before, after in zip(samples, samples[1:]):
+            if before.t_s <= t_s <= after.t_s:
+                span = after.t_s - before.t_s
+                w = 0.0 if span <= 0.0 else (t_s - before.t_s) / span
+                direction = (1.0 - w) * before.direction + w * after.direction
+                return ((1.0 - w) * before.centroid_mm + w * after.centroid_mm,
+                        direction / np.linalg.norm(direction))
+        return samples[-1].centroid_mm, samples[-1].direction
+
+
+class SimBench:
+    """The simulated side of a session: world, fakes, their servers, the clock, and fault injection."""
+
+    def __init__(self, clock: SimClock, world: Any, amplifier_fake: Any, amplifier_server: Any,
+                 scene: Any, true_views: dict[str, Any], substep_s: float) -> None:
+        self.clock = clock
+        self.world = world
+        self.amplifier_fake = amplifier_fake
+        self.amplifier_server = amplifier_server
+        self.scene = scene
+        self.true_views = true_views
+        self.substep_s = substep_s
+        self.history = PoseHistory()
+        self.grabber_devices: dict[str, Any] = {}
+        self.frame_sources: dict[str, FrameSource] = {}
+        self.ots_fake: Any = None
+        self.ots_server: Any = None
+        #: (t, max |measured current|) after every world step: what the coils really carried.
+        self.current_trace: list[tuple[float, float]] = []
+        self._step_lock = threading.Lock()
+        pose = world.pose
+        self.history.append(clock.now(), pose.centroid_mm, pose.direction)
+
+    # -- time ------------------------------------------------------------------------------------
+    def measured_currents_a(self) -> np.ndarray:
+        """The amplifier fake's coil currents now (brought up to the simulated clock first)."""
+        with self.amplifier_server.lock:
+            self.amplifier_fake.tick(self.clock.now())
+            return self.amplifier_fake.measured_currents_a()
+
+    def step(self, dt_s: float) -> None:
+        """Advance world and clock by ``dt_s``, in substeps each holding the amplifier's MEASURED currents."""
+        with self._step_lock:
+            remaining = dt_s
+            while remaining > 1e-12:
+                h = min(self.substep_s, remaining)
+                currents = self.measured_currents_a()
+                self.world.step(h, currents)
+                t = self.clock.advance(h)
+                pose = self.world.pose
+                self.history.append(t, pose.centroid_mm, pose.direction)
+                self.current_trace.append((t, float(np.max(np.abs(currents)))))
+                remaining -= h
+            # The fake reflects the end of the step for whoever reads it next.
+            self.current_trace.append((self.clock.now(), float(np.max(np.abs(self.measured_currents_a())))))
+
+    def advance_to(self, t_s: float) -> None:
+        if t_s > self.clock.now():
+            self.step(t_s - self.clock.now())
+
+    @contextlib.contextmanager
+    def real_time(self, period_s: float = 0.004) -> Iterator[None]:
+        """While inside, a thread advances the world in step with the wall clock (used while devices start
+        and shut down: their handshakes wait in real time, and the coils must keep evolving meanwhile)."""
+        stop = threading.Event()
+
+        def run() -> None:
+            last = time.monotonic()
+            while not stop.wait(period_s):
+                now = time.monotonic()
+                self.step(now - last)
+                last = now
+
+        thread = threading.Thread(target=run, name="sim-real-time", daemon=True)
+        thread.start()
+        try:
+            yield
+        finally:
+            stop.set()
+            thread.join(timeout=2.0)
+
+    # -- fault injection -------------------------------------------------------------------------
+    def cut_amplifier_link(self) -> None:
+        """The amplifier's cable is pulled: no byte passes either way from now on."""
+        self.amplifier_server.unplugged.set()
+
+    def press_estop(self) -> None:
+        with self.amplifier_server.lock:
+            self.amplifier_fake.press_estop()
+
+    def hide_robot(self, hidden: bool = True) -> None:
+        """Frames show no robot (it left the field of view, or the images are unusable): tracking is lost."""
+        self.history.visible = not hidden
+
+    def stop_grabbers(self) -> None:
+        """The imaging chain goes silent (generator off, grabbers stop streaming) without any error."""
+        for device in self.grabber_devices.values():
+            with device._lock:       # noqa: SLF001 - the fake's own lock; a silent stop has no protocol request
+                device.streaming = False
+        for source in self.frame_sources.values():
+            if hasattr(source, "scene"):
+                source.scene.rate_hz = 1e-6   # loopback grabber: next frame in 11 days
+
+    def close(self) -> None:
+        for server in (self.ots_server, self.amplifier_server):
+            if server is not None:
+                server.close()
+
+
+@dataclass
+class Devices:
+    """Everything the frame loop talks to, opened and ready; ``close`` releases it all (idempotent)."""
+
+    amplifier: Amplifier
+    frames: BiplaneStream
+    calibration: Calibration
+    ots: NDITracker | None = None
+    sim: SimBench | None = None
+    names: dict[str, str] = field(default_factory=dict)   # device -> where it is (for messages and records)
+    _closers: contextlib.ExitStack = field(default_factory=contextlib.ExitStack)
+
+    def close(self) -> None:
+        self._closers.close()
+
+    def __enter__(self) -> Devices:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+# -- calibration --------------------------------------------------------------------------------------
+def perturbed_calibration(true_views: dict[str, Any], rotation_deg: float, translation_mm: float,
+                          seed: int) -> Calibration:
+    """The simulated views as the appliance believes them: each view's pose turned by ``rotation_deg``
+    about a random axis and moved by ``translation_mm`` in a random direction (seeded)."""
+    rng = np.random.default_rng(seed)
+    views = {}
+    for name, view in true_views.items():
+        axis = rng.normal(size=3)
+        turn = Rotation.from_rotvec(axis / np.linalg.norm(axis) * np.radians(rotation_deg)).as_matrix()
+        shift = rng.normal(size=3)
+        shift *= translation_mm / np.linalg.norm(shift)
+        views[name] = View(name, view.K, view.dist, turn @ view.R, view.t + shift, view.image_size)
+    return Calibration.from_views(views["p"], views["q"], {
+        "source": "nominal views of the simulated biplane system",
+        "perturbation": {"rotation_deg": rotation_deg, "translation_mm": translation_mm, "seed": seed}})
+
+
+# -- amplifier ----------------------------------------------------------------------------------------
+def amplifier_limits(device: AmplifierDevice, coils: Any) -> AmplifierLimits:
+    """Per-channel limits set on the amplifier: the coils' limits, lowered by the device section's."""
+    cap = device.max_current_a if device.max_current_a is not None else float("inf")
+    slew = device.slew_a_per_s if device.slew_a_per_s is not None else coils.limits.max_slew_a_per_s
+    return AmplifierLimits(tuple(min(c.max_current_a, cap) for c in coils.coils), (slew,) * len(coils.coils),
+                           device.watchdog_ms)
+
+
+def _connect_amplifier(url: str, device: AmplifierDevice, coils: Any) -> Amplifier:
+    port = open_serial(url, baudrate=device.baudrate, timeout=0.005)
+    amplifier = Amplifier(port, ack_timeout_s=device.ack_timeout_ms / 1000.0, retries=device.retries)
+    try:
+        if amplifier.info.channels != len(coils.coils):
+            raise ConfigError(f"the amplifier on {url} has {amplifier.info.channels} channels but the coils file "
+                              f"configures {len(coils.coils)} coils")
+        if amplifier.state is State.ENABLED:
+            log.warning("amplifier on %s was left enabled by a previous session: disabling it", url)
+            amplifier.disable()
+        try:
+            amplifier.configure_limits(amplifier_limits(device, coils))
+        except ValueError as err:
+            raise ConfigError(f"devices.amplifier: limits do not fit the amplifier on {url}: {err}") from err
+    except BaseException:
+        amplifier.close()
+        raise
+    return amplifier
+
+
+def _loopback_amplifier(device: AmplifierDevice, coils: Any, clock: SimClock) -> tuple[Any, Any]:
+    from drivers.loopback.amplifier_fake import FakeAmplifier, FakeAmplifierConfig
+    from drivers.loopback.serve import PtyServer, TcpServer
+
+    resistance = float(np.mean([c.resistance_ohm for c in coils.coils]))
+    inductance = float(np.mean([c.inductance_h for c in coils.coils]))
+    max_current = min(max(c.max_current_a for c in coils.coils), device.rated_current_a)
+    fake = FakeAmplifier(FakeAmplifierConfig(
+        channels=len(coils.coils), rated_current_a=device.rated_current_a, max_current_a=max_current,
+        slew_a_per_s=coils.limits.max_slew_a_per_s, watchdog_ms=device.watchdog_ms,
+        coil_resistance_ohm=resistance, coil_inductance_h=max(inductance, 1e-6),
+        thermal_resistance_k_per_w=device.thermal_resistance_k_per_w))
+    server = TcpServer(fake, clock=clock) if device.link == "tcp" else PtyServer(fake, clock=clock)
+    return fake, server
+
+
+def _shutdown_in_real_time(bench_sim: SimBench, amplifier: Amplifier) -> None:
+    with bench_sim.real_time():
+        amplifier.shutdown()
+
+
+# -- optical tracker ----------------------------------------------------------------------------------
+def _connect_ots(url: str, device: OtsDevice, rom: bytes | str, rom_name: str) -> NDITracker:
+    port = open_serial(url, baudrate=9600, timeout=0.05)
+    tracker = NDITracker(port)
+    try:
+        tracker.connect(baudrate=device.baudrate)
+        tracker.load_tool(rom, rom_name)
+        tracker.start()
+        tracker.start_streaming(device.mode, device.rate_hz)
+    except BaseException:
+        tracker.close()
+        raise
+    return tracker
+
+
+# -- the whole session --------------------------------------------------------------------------------
+def open_devices(session: Session, robot: RobotSpec, coils: Any) -> Devices:
+    """Open (or, in simulation, build and open) every device of ``session``; the frame stream is started."""
+    config = session.config
+    stack = contextlib.ExitStack()
+    try:
+        if config.is_simulation:
+            devices = _open_simulation(session, robot, coils, stack)
+        else:
+            devices = _open_bench(session, coils, stack)
+    except BaseException:
+        stack.close()
+        raise
+    devices._closers = stack
+    return devices
+
+
+def _open_bench(session: Session, coils: Any, stack: contextlib.ExitStack) -> Devices:
+    config = session.config
+    assert config.calibration.file is not None
+    calibration = Calibration.load(session.resolve(config.calibration.file))
+    amp = config.devices.amplifier
+    assert amp.port is not None
+    amplifier = _connect_amplifier(amp.port, amp, coils)
+    stack.callback(amplifier.shutdown)
+    xray = config.devices.xray
+    assert xray.sources is not None
+    sources = {plane: open_source(url) for plane, url in xray.sources.items()}
+    frames = _stream(sources, config)
+    stack.callback(frames.stop)
+    names = {"amplifier": amp.port, "xray_p": xray.sources["p"], "xray_q": xray.sources["q"]}
+    ots = None
+    if config.devices.ots.kind == "serial":
+        device = config.devices.ots
+        assert device.port is not None and device.rom is not None
+        rom = session.resolve(device.rom)
+        ots = _connect_ots(device.port, device, str(rom), rom.name)
+        stack.callback(ots.close)
+        names["ots"] = device.port
+    return Devices(amplifier, frames, calibration, ots, None, names)
+
+
+def _stream(sources: dict[str, FrameSource], config: Any) -> BiplaneStream:
+    xray = config.devices.xray
+    pairer = BiplanePairer(match=xray.match, mode="latest", max_skew_s=xray.max_skew_ms / 1000.0)
+    stream = BiplaneStream(sources, pairer, poll_s=0.05)
+    stream.start()
+    return stream
+
+
+def _robot_mapping(robot: RobotSpec) -> dict[str, float]:
+    return {"length_mm": robot.length_mm, "diameter_mm": robot.diameter_mm, "remanence_t": robot.remanence_t,
+            "magnet_volume_mm3": robot.magnet_volume_mm3, "density_kg_m3": robot.density_kg_m3}
+
+
+def _open_simulation(session: Session, robot: RobotSpec, coils: Any, stack: contextlib.ExitStack) -> Devices:
+    from drivers.loopback.loopback_grabber import LoopbackFrameSource, LoopbackScene, make_usb_backend
+    from drivers.loopback.world import SimWorld
+    from drivers.loopback.xray_render import (
+        BiplaneRenderer, ImagingSettings, RobotBody, RobotPose, VesselPhantom, biplane_views,
+    )
+    from firmware_protocol import usb_grabber as usb_proto
+
+    config = session.config
+    sim, imaging = config.simulation, config.imaging
+    clock = SimClock()
+    coils_data = read_yaml(session.coils_path)
+    vessel_data = read_yaml(session.vessel_path)
+    if not isinstance(vessel_data, dict) or "vessel" not in vessel_data:
+        raise ConfigError(f"{session.vessel_path}: simulation needs a 'vessel' section (the phantom)")
+    try:
+        world = SimWorld.from_config(coils_data, vessel_data["vessel"], robot=_robot_mapping(robot),
+                                     world=vessel_data.get("world") or {}, seed=sim.seed)
+    except (KeyError, TypeError, ValueError) as err:
+        raise ConfigError(f"{session.vessel_path}: cannot build the simulated world: {err}") from err
+
+    true_views = biplane_views(sod_mm=imaging.sod_mm, sdd_mm=imaging.sdd_mm, fov_mm=imaging.fov_mm,
+                               image_size=imaging.image_size, separation_deg=imaging.separation_deg,
+                               elevation_deg=imaging.elevation_deg)
+    if config.calibration.source == "nominal":
+        p = config.calibration.perturbation
+        calibration = perturbed_calibration(true_views, p.rotation_deg, p.translation_mm, p.seed)
+    else:
+        assert config.calibration.file is not None
+        calibration = Calibration.load(session.resolve(config.calibration.file))
+
+    fake, server = _loopback_amplifier(config.devices.amplifier, coils, clock)
+    stack.callback(server.close)
+    bench_sim = SimBench(clock, world, fake, server, None, true_views, sim.substep_ms / 1000.0)
+    stack.callback(bench_sim.close)
+
+    body = RobotBody(robot.length_mm, robot.diameter_mm, robot.tip_angle_deg, robot.attenuation_per_mm)
+    phantom = VesselPhantom(world.vessel.sample(1.0), world.vessel.radius_mm, imaging.vessel_attenuation_per_mm)
+    renderer = BiplaneRenderer(true_views, body, vessel=phantom, seed=sim.seed,
+                               settings=ImagingSettings(photons_per_pixel=imaging.photons_per_pixel))
+    history = bench_sim.history
+
+    def scene_pose(t_s: float) -> Any:
+        if not history.visible:
+            return None
+        centroid, direction = history.at(t_s)
+        return RobotPose(centroid, direction)
+
+    scene = LoopbackScene(renderer, scene_pose, rate_hz=imaging.fps, exposure_s=imaging.exposure_ms / 1000.0)
+    bench_sim.scene = scene
+    xray = config.devices.xray
+    if xray.link == "usb":
+        backend = make_usb_backend(scene, realtime=True, seed=sim.seed, clock=clock, sleep=clock.sleep)
+        urls = {plane: _LOOPBACK_USB.format(vid=usb_proto.VENDOR_ID, pid=usb_proto.PRODUCT_ID,
+                                            plane=plane, plane_upper=plane.upper()) for plane in ("p", "q")}
+        sources = {plane: open_source(url, backend=backend) for plane, url in urls.items()}
+        bench_sim.grabber_devices = {plane: backend.device(f"XRG-{plane.upper()}") for plane in ("p", "q")}
+    else:
+        urls = {plane: f"loopback grabber, plane {plane}" for plane in ("p", "q")}
+        sources = {plane: LoopbackFrameSource(scene, plane, clock=clock, sleep=clock.sleep, seed=sim.seed)
+                   for plane in ("p", "q")}
+    bench_sim.frame_sources = sources
+    # Started at simulated t = 0, so the grabbers' exposure clock is the world's clock.
+    frames = _stream(sources, config)
+    stack.callback(frames.stop)
+
+    amp_url = server.path if config.devices.amplifier.link == "pty" else server.address
+    with bench_sim.real_time():
+        amplifier = _connect_amplifier(amp_url, config.devices.amplifier, coils)
+    # Shut down (ramp to zero, output off) before the servers close: the stack unwinds in reverse.
+    stack.callback(_shutdown_in_real_time, bench_sim, amplifier)
+    names = {"amplifier": f"loopback amplifier on {amp_url}", "xray_p": urls["p"], "xray_q": urls["q"]}
+
+    ots = None
+    if config.devices.ots.kind == "loopback":
+        from drivers.loopback.ots_fake import NdiTrackerFake, NoiseModel, synthetic_rom
+        from drivers.loopback.serve import PtyServer, TcpServer
+
+        def tool_pose(now: float) -> dict[int, Any]:
+            pose = world.tool_pose()
+            return {0: (pose.rotation, pose.position_mm)}
+
+        ots_fake = NdiTrackerFake(tool_pose, noise=NoiseModel(seed=sim.seed))
+        device = config.devices.ots
+        ots_server = TcpServer(ots_fake, clock=clock) if device.link == "tcp" else PtyServer(ots_fake, clock=clock)
+        bench_sim.ots_fake, bench_sim.ots_server = ots_fake, ots_server
+        ots_url = ots_server.path if device.link == "pty" else ots_server.address
+        ots = _connect_ots(ots_url, device, synthetic_rom("ROBOT-HOLDER"), "robot-holder (synthetic)")
+        stack.callback(ots.close)
+        names["ots"] = f"loopback NDI tracker on {ots_url}"
+    log.info("simulated bench: %s", ", ".join(f"{k}: {v}" for k, v in names.items()))
+    return Devices(amplifier, frames, calibration, ots, bench_sim, names)

@@ -1,0 +1,425 @@
+"""The per-frame loop: newest biplane pair -> posture -> controller -> current allocation -> amplifier.
+
+One owner (the thread that calls :meth:`Orchestrator.step`) runs every stage in order on an injected
+monotonic clock (the real one on a bench, the simulated one in simulation); device reader threads only
+hand over their newest data (the biplane stream's newest pair, the optical tracker's newest frame, the
+amplifier driver's fault events). Every step's stages are timed on the wall clock, and the latency from
+"the later frame of the pair is on the host" to "the current command is written to the amplifier" is
+measured, as on a bench.
+
+Safety: the :class:`~appliance.control.SafetySupervisor` holds, zeroes or stops according to tracking;
+in addition the loop latches a stop (output disabled at once, reason recorded) on an amplifier fault,
+a lost amplifier link, a silent imaging chain (no pair for ``frame_timeout_ms``), a frame source error
+and an operator stop (:meth:`Orchestrator.request_stop`, safe from any thread). :meth:`shutdown` runs
+whatever happened (use the orchestrator as a context manager) and ramps the coils to zero and disables
+the output; it is idempotent.
+
+Listeners (the recorder, a live view) see every step; an exception in a listener is not swallowed: it
+stops the loop and propagates (wrapped in :class:`ListenerError`), and the shutdown still zeroes the coils.
+The optical tracker is never in the control path: its failure is recorded and the loop goes on without it.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from appliance.control import CurrentAllocator, Mode, PathFollower, SafetySupervisor
+from appliance.errors import ApplianceError, DeviceError, DeviceFaultError, DeviceTimeoutError, InputDataError
+from appliance.recognition import PostureTracker
+from appliance.session_config import SessionConfig
+from drivers.amplifier import Amplifier, AmplifierEvent, AmplifierFaultError
+from drivers.biplane_pairing import BiplanePair, BiplaneStream
+from drivers.ndi_tracker import NDITracker, ToolSample
+
+log = logging.getLogger(__name__)
+
+
+class ListenerError(ApplianceError):
+    """A loop listener (recorder, live view) failed; the loop stopped and the coils were zeroed."""
+
+
+class LoopListener:
+    """Observer of the loop. Override what you need; exceptions stop the loop (they are never swallowed)."""
+
+    def on_start(self, t_s: float, info: dict[str, Any]) -> None: ...
+
+    def on_frame(self, report: FrameReport) -> None: ...
+
+    def on_ots(self, t_s: float, samples: list[dict[str, Any]]) -> None: ...
+
+    def on_status(self, t_s: float, device: str, status: dict[str, Any]) -> None: ...
+
+    def on_fault(self, t_s: float, fault: dict[str, Any]) -> None: ...
+
+    def on_stop(self, t_s: float, summary: dict[str, Any]) -> None: ...
+
+
+@dataclass(frozen=True)
+class LoopSettings:
+    """The loop's timing (seconds); see :class:`appliance.session_config.LoopSection`."""
+
+    fps: float = 30.0
+    pair_timeout_s: float = 0.5
+    frame_timeout_s: float = 0.25
+    startup_timeout_s: float = 3.0
+    status_every_frames: int = 30
+    stop_at_end: bool = True
+
+    @classmethod
+    def from_config(cls, config: SessionConfig) -> LoopSettings:
+        loop = config.loop
+        return cls(fps=config.imaging.fps, pair_timeout_s=loop.pair_timeout_ms / 1000.0,
+                   frame_timeout_s=loop.frame_timeout_ms / 1000.0,
+                   startup_timeout_s=config.devices.xray.startup_timeout_ms / 1000.0,
+                   status_every_frames=loop.status_every_frames, stop_at_end=loop.stop_at_end)
+
+
+@dataclass
+class FrameReport:
+    """What one step saw and did (all lengths mm, fields T, forces N, currents A, times s)."""
+
+    index: int
+    t_s: float
+    frame: int | None                     # biplane pair number; None when no pair came this step
+    posture: dict[str, Any] | None        # the posture record (architecture.md contract)
+    tracked: bool
+    mode: str                             # safety mode after this step: run, hold, zero, stop
+    reason: str | None
+    cross_track_mm: float | None
+    progress: float | None
+    done: bool
+    field_T: np.ndarray
+    force_N: np.ndarray
+    commanded_a: np.ndarray
+    measured_a: np.ndarray | None
+    scale: float
+    limited_by: str | None
+    stages_us: dict[str, float] = field(default_factory=dict)
+    latency_write_s: float | None = None  # later frame of the pair on the host -> command written
+    latency_ack_s: float | None = None    # ... -> command acknowledged with the measured currents
+    stopped: bool = False
+
+    def command_record(self) -> dict[str, Any]:
+        return {"frame": self.frame, "mode": self.mode, "reason": self.reason, "tracked": self.tracked,
+                "field_T": self.field_T.tolist(), "force_N": self.force_N.tolist(),
+                "commanded_a": self.commanded_a.tolist(), "scale": self.scale, "limited_by": self.limited_by,
+                "cross_track_mm": self.cross_track_mm, "progress": self.progress, "done": self.done}
+
+
+@dataclass
+class LoopStats:
+    steps: int = 0
+    pairs: int = 0
+    tracked: int = 0
+    lost: int = 0            # pairs where recognition found no robot
+    no_pair: int = 0         # steps without a new pair
+    latency_write_s: list[float] = field(default_factory=list)
+    latency_ack_s: list[float] = field(default_factory=list)
+    step_s: list[float] = field(default_factory=list)
+
+
+def _sample_record(sample: ToolSample) -> dict[str, Any]:
+    return {"handle": sample.handle, "rom": sample.rom, "frame": sample.frame, "missing": sample.missing,
+            "position_mm": list(sample.position_mm) if sample.position_mm is not None else None,
+            "quaternion": list(sample.quaternion) if sample.quaternion is not None else None,
+            "rms_mm": sample.rms_mm}
+
+
+class Orchestrator:
+    """The closed loop over ready devices; context manager: ``start`` on enter, ``shutdown`` on exit."""
+
+    def __init__(self, *, frames: BiplaneStream, amplifier: Amplifier, tracker: PostureTracker,
+                 follower: PathFollower, safety: SafetySupervisor, allocator: CurrentAllocator, moment_am2: float,
+                 settings: LoopSettings = LoopSettings(), clock: Callable[[], float] = time.monotonic,
+                 ots: NDITracker | None = None, listeners: Iterable[LoopListener] = (),
+                 names: dict[str, str] | None = None) -> None:
+        self.frames, self.amplifier, self.tracker = frames, amplifier, tracker
+        self.follower, self.safety, self.allocator = follower, safety, allocator
+        self.moment_am2 = moment_am2
+        self.settings = settings
+        self.clock = clock
+        self.ots = ots
+        self.listeners = list(listeners)
+        self.names = dict(names or {})
+        self.stats = LoopStats()
+        self.running = False
+        self.stop_reason: str | None = None
+        self.shutdown_safe: bool | None = None
+        self._n = allocator.model.n
+        self._commanded = np.zeros(self._n)
+        self._position: np.ndarray | None = None
+        self._moment_dir: np.ndarray | None = None
+        self._last_tracked: tuple[float, np.ndarray] | None = None
+        self._last_pair_t = 0.0
+        self._ots_frame = -1
+        self._stop_request: str | None = None
+        self._amp_events: list[AmplifierEvent] = []
+        self._events_lock = threading.Lock()
+        self._shut = False
+
+    # -- lifecycle ----------------------------------------------------------------------------------
+    def __enter__(self) -> Orchestrator:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.shutdown()
+
+    def start(self) -> None:
+        """Check every device, fail clearly if one is not ready, then enable the amplifier output."""
+        status = self.amplifier.status()
+        where = self.names.get("amplifier", "the amplifier")
+        if status.faults.latched:
+            raise DeviceFaultError(f"{where} reports latched faults {status.faults!r}: find the cause, then clear "
+                                   f"them (`appliance amp clear`) before a session")
+        if self.amplifier.info.channels != self._n:
+            raise DeviceError(f"{where} has {self.amplifier.info.channels} channels, the coils file {self._n}")
+        try:
+            pair = self.frames.next_pair(self.settings.startup_timeout_s)
+        except DeviceTimeoutError as err:
+            raise DeviceTimeoutError(
+                f"no biplane pair from {self.names.get('xray_p', 'plane p')} and {self.names.get('xray_q', 'plane q')} "
+                f"within {self.settings.startup_timeout_s:g} s: is the X-ray on and are both grabbers streaming?") from err
+        for plane, frame in pair.frames.items():
+            size = self.tracker.calibration.views[plane].image_size
+            if (frame.width, frame.height) != size:
+                raise InputDataError(f"plane {plane} delivers {frame.width}x{frame.height} px images but the "
+                                     f"calibration is for {size[0]}x{size[1]}: wrong calibration or grabber mode")
+        if self.ots is not None:
+            try:
+                self.ots.wait_for_frame(timeout_s=self.settings.startup_timeout_s)
+            except DeviceError as err:
+                raise DeviceTimeoutError(f"optical tracker {self.names.get('ots', '')}: {err}") from err
+        self.amplifier.add_listener(self._on_amplifier_event)
+        self.amplifier.enable()
+        self._commanded = np.zeros(self._n)
+        self._last_pair_t = self.clock()
+        self.running = True
+        self._notify("on_start", self.clock(), {"devices": dict(self.names), "channels": self._n,
+                                                "fps": self.settings.fps})
+        log.info("loop started: %s", ", ".join(f"{k} = {v}" for k, v in self.names.items()))
+
+    def request_stop(self, reason: str = "operator stop") -> None:
+        """Operator stop from any thread: the next step latches STOP and switches the output off."""
+        self._stop_request = reason
+
+    def run(self, until: Callable[[FrameReport], bool] | None = None) -> str | None:
+        """Step until the loop stops (end of path, a latched stop) or ``until(report)`` is true."""
+        while self.running:
+            report = self.step()
+            if until is not None and until(report):
+                break
+        return self.stop_reason
+
+    def shutdown(self) -> bool:
+        """Ramp the coils to zero and disable the output (whatever happened before); True when the amplifier
+        confirmed it. Idempotent."""
+        if self._shut:
+            return bool(self.shutdown_safe)
+        self._shut = True
+        self.running = False
+        try:
+            self.shutdown_safe = self.amplifier.shutdown()
+        finally:
+            if not self.shutdown_safe:
+                log.error("shutdown: the amplifier did not confirm zero current (its watchdog takes over)")
+            summary = {"reason": self.stop_reason, "safe": bool(self.shutdown_safe), "steps": self.stats.steps,
+                       "pairs": self.stats.pairs, "tracked": self.stats.tracked}
+            self._notify("on_stop", self.clock(), summary)
+        return bool(self.shutdown_safe)
+
+    # -- the step -----------------------------------------------------------------------------------
+    def step(self) -> FrameReport:
+        """One frame: wait for the newest pair, recognise, decide, allocate, command; listeners see the result."""
+        if not self.running:
+            raise DeviceError(f"the loop is not running ({self.stop_reason or 'not started'})")
+        stages: dict[str, float] = {}
+        began = time.perf_counter()
+        self.stats.steps += 1
+        fault = self._pending_fault()
+        if fault is not None:
+            return self._latch(*fault, stages=stages)
+        pair, error = self._next_pair()
+        stages["wait_pair"] = (time.perf_counter() - began) * 1e6
+        now = self.clock()
+        if error is not None:
+            return self._latch("xray", error, stages=stages)
+        if pair is not None:
+            self._last_pair_t = now
+            self.stats.pairs += 1
+        elif now - self._last_pair_t > self.settings.frame_timeout_s:
+            return self._latch("xray", f"no biplane pair for {(now - self._last_pair_t) * 1000:.0f} ms "
+                                       f"(limit {self.settings.frame_timeout_s * 1000:.0f} ms): the imaging chain stopped",
+                               stages=stages)
+        else:
+            self.stats.no_pair += 1
+
+        mark = time.perf_counter()
+        posture = None
+        tracked = False
+        if pair is not None:
+            posture = self.tracker.process(pair.p.image, pair.q.image, frame=pair.number, t=now)
+            for name, us in posture.timings_us.items():
+                stages[f"recognition.{name}"] = us
+            tracked = posture.ok and posture.centroid_mm is not None
+            self.stats.tracked += tracked
+            self.stats.lost += not tracked
+        stages["recognition"] = (time.perf_counter() - mark) * 1e6
+
+        mark = time.perf_counter()
+        command, speed = None, None
+        if tracked:
+            assert posture is not None and posture.centroid_mm is not None
+            centroid = posture.centroid_mm
+            axis = posture.direction if posture.direction is not None else self._moment_dir
+            if axis is None:
+                axis = self.follower.tangent_at(self.follower.nearest(centroid)[0])
+            if self._last_tracked is not None and now > self._last_tracked[0]:
+                speed = float(np.linalg.norm(centroid - self._last_tracked[1]) / (now - self._last_tracked[0]))
+            self._last_tracked = (now, centroid.copy())
+            self._position = centroid.copy()
+            command = self.follower.command(centroid, axis, now)
+        decision = self.safety.update(now, tracked, command.field_T if command else None,
+                                      command.force_N if command else None, speed)
+        stages["control"] = (time.perf_counter() - mark) * 1e6
+        if decision.mode is Mode.STOP:
+            return self._latch("safety", decision.reason or "safety stop", stages=stages)
+
+        mark = time.perf_counter()
+        field_norm = float(np.linalg.norm(decision.field_T))
+        if field_norm > 0.0:
+            self._moment_dir = decision.field_T / field_norm
+        position = self._position if self._position is not None else np.zeros(3)
+        moment = self.moment_am2 * (self._moment_dir if self._moment_dir is not None else np.array([0.0, 0.0, 1.0]))
+        allocation = self.allocator.allocate(position, decision.field_T, decision.force_N, moment, self._commanded,
+                                             1.0 / self.settings.fps)
+        stages["allocation"] = (time.perf_counter() - mark) * 1e6
+
+        mark = time.perf_counter()
+        sent = time.monotonic()
+        try:
+            result = self.amplifier.set_currents(allocation.currents_a)
+        except AmplifierFaultError as err:
+            return self._latch("amplifier", f"amplifier fault: {err}", stages=stages)
+        except DeviceError as err:
+            return self._latch("amplifier", f"amplifier link: {err}", stages=stages, link_lost=True)
+        acked = time.monotonic()
+        stages["amplifier"] = (acked - sent) * 1e6
+        self._commanded = result.commanded_a
+        latency_write = latency_ack = None
+        if pair is not None:
+            available = max(pair.p.host_time_s, pair.q.host_time_s)
+            # The bytes go out right after the driver's limit check, microseconds after `sent`.
+            latency_write = sent - available
+            latency_ack = acked - available
+            self.stats.latency_write_s.append(latency_write)
+            self.stats.latency_ack_s.append(latency_ack)
+
+        report = FrameReport(
+            index=self.stats.steps, t_s=now, frame=pair.number if pair else None,
+            posture=posture.to_record() if posture is not None else None, tracked=tracked,
+            mode=decision.mode.value, reason=decision.reason,
+            cross_track_mm=command.cross_track_mm if command else None,
+            progress=command.progress if command else None, done=bool(command and command.done),
+            field_T=np.asarray(decision.field_T, float), force_N=np.asarray(decision.force_N, float),
+            commanded_a=result.commanded_a, measured_a=result.measured_a, scale=allocation.scale,
+            limited_by=allocation.limited_by, stages_us=stages, latency_write_s=latency_write,
+            latency_ack_s=latency_ack)
+        self._side_channels(now)
+        stages["total"] = (time.perf_counter() - began) * 1e6
+        self.stats.step_s.append(stages["total"] / 1e6)
+        self._notify("on_frame", report)
+        if report.done and self.settings.stop_at_end:
+            self.running = False
+            self.stop_reason = "the robot reached the end of the path"
+            log.info("loop: %s at t = %.2f s", self.stop_reason, now)
+        return report
+
+    # -- helpers ------------------------------------------------------------------------------------
+    def _next_pair(self) -> tuple[BiplanePair | None, str | None]:
+        try:
+            return self.frames.next_pair(self.settings.pair_timeout_s), None
+        except DeviceTimeoutError:
+            return None, None
+        except ApplianceError as err:   # a grabber vanished, a link broke, a source ended
+            return None, f"X-ray frames: {err}"
+
+    def _on_amplifier_event(self, event: AmplifierEvent) -> None:
+        # Called on the driver's heartbeat thread: only hand the event over.
+        if event.kind in ("fault", "link_lost"):
+            with self._events_lock:
+                self._amp_events.append(event)
+
+    def _pending_fault(self) -> tuple[str, str] | None:
+        if self._stop_request is not None:
+            return "operator", self._stop_request
+        with self._events_lock:
+            events, self._amp_events = self._amp_events, []
+        for event in events:
+            return "amplifier", f"amplifier {event.kind.replace('_', ' ')}: {event.message}"
+        return None
+
+    def _latch(self, device: str, reason: str, *, stages: dict[str, float], link_lost: bool = False) -> FrameReport:
+        """Latched stop: output off at once (unless the link is gone), the reason recorded, the loop ended."""
+        now = self.clock()
+        decision = self.safety.fault(reason, now)
+        if not link_lost:
+            try:
+                self.amplifier.disable()
+            except ApplianceError as err:
+                log.error("stop: could not disable the amplifier output: %s", err)
+        self.running = False
+        self.stop_reason = reason
+        log.warning("loop stopped at t = %.3f s: %s", now, reason)
+        self._notify("on_fault", now, {"device": device, "reason": reason, "mode": decision.mode.value,
+                                       "step": self.stats.steps})
+        report = FrameReport(
+            index=self.stats.steps, t_s=now, frame=None, posture=None, tracked=False, mode=decision.mode.value,
+            reason=reason, cross_track_mm=None, progress=None, done=False, field_T=np.zeros(3),
+            force_N=np.zeros(3), commanded_a=np.zeros(self._n), measured_a=None, scale=0.0, limited_by=None,
+            stages_us=stages, stopped=True)
+        self._notify("on_frame", report)
+        return report
+
+    def _side_channels(self, now: float) -> None:
+        """OTS samples and device status, recorded beside the loop (never steering it)."""
+        if self.ots is not None:
+            try:
+                samples = self.ots.latest()
+            except ApplianceError as err:
+                log.error("optical tracker lost (%s); the loop goes on without it", err)
+                self._notify("on_fault", now, {"device": "ots", "reason": f"optical tracker: {err}",
+                                               "mode": "continue", "step": self.stats.steps})
+                self.ots = None
+                samples = None
+            if samples and samples[0].frame != self._ots_frame:
+                self._ots_frame = samples[0].frame
+                self._notify("on_ots", now, [_sample_record(s) for s in samples])
+        if self.stats.steps % self.settings.status_every_frames == 1:
+            status = self.amplifier.status()
+            self._notify("on_status", now, "amplifier", {
+                "state": status.state.name, "faults": repr(status.faults), "uptime_s": status.uptime_s,
+                "measured_a": status.measured_a.tolist(), "setpoint_a": status.setpoint_a.tolist(),
+                "temperature_c": status.temperature_c.tolist(), "retransmissions": self.amplifier.retransmissions})
+            counters = self.frames.pairer.counters
+            self._notify("on_status", now, "xray", {
+                "pairs": counters.pairs, "superseded": counters.superseded, "unpaired_p": counters.unpaired_p,
+                "unpaired_q": counters.unpaired_q,
+                **{f"{plane}_{k}": v for plane, source in self.frames.sources.items()
+                   for k, v in vars(source.counters).items()}})
+
+    def _notify(self, method: str, *args: Any) -> None:
+        for listener in self.listeners:
+            try:
+                getattr(listener, method)(*args)
+            except Exception as err:
+                self.running = False
+                self.stop_reason = f"listener {type(listener).__name__} failed in {method}: {err}"
+                log.error("loop: %s", self.stop_reason)
+                raise ListenerError(self.stop_reason) from err
