@@ -1,23 +1,27 @@
 """Synthetic biplane X-ray frames with ground truth: the simulated fluoroscope behind the loopback grabber.
 
 Per detector pixel a ray leaves the X-ray source through the pixel (distorted pixel -> ideal ray);
-closed-form chords through the robot (cylinder + cone), calibration beads (spheres) and a contrast
-vessel (mitred tube) give path lengths, and Beer-Lambert gives the expected photon count
+closed-form chords through the robot (cylinder + cone), calibration beads (spheres) and contrast
+vessels (mitred tubes) give path lengths, and Beer-Lambert gives the expected photon count
 ``I0(u,v) * exp(-sum mu_i L_i)``. ``I0`` carries the geometric cos^3 falloff, an anode heel gradient
 along the image's x axis and a radial vignette, so no single gray threshold fits the whole image.
-Quantum noise is Poisson (a variance-matched Gaussian where counts are high, exact Poisson where they
-are low), the detector's light spread is a Gaussian blur applied after the noise (as in a
-scintillator), and the result is offset and scaled into 16 bits. The robot is darker than its
-surroundings.
+A robot inside a vessel's lumen pushes its contrast aside (its net attenuation there is
+``mu_robot - mu_contrast``). Quantum noise is Poisson (a variance-matched Gaussian where counts are
+high, exact Poisson below 30 photons), the detector's light spread is a Gaussian blur applied after
+the noise (as in a scintillator), and the result is offset and scaled into 16 bits. The robot is
+darker than its surroundings.
 
-Speed: the static scene (field x vessel x beads) is rendered once per view; per frame only the
+Speed: the static scene (field x vessels x beads) is rendered once per view; per frame only the
 robot's projected bounding box is traced, at pixel centres, and only the pixels on its silhouette's
-edge are supersampled (``supersample``^2 rays) for anti-aliasing. Noise, blur and 16-bit conversion
-are full-frame numpy/OpenCV passes.
+edge are supersampled (``supersample``^2 rays) for anti-aliasing. Unit normal noise comes from
+windows at random offsets into a bank drawn once (``fresh_noise`` draws anew each frame). Noise,
+blur and 16-bit conversion are full-frame numpy/OpenCV passes. ``benchmarks/render_speed.py``
+measures it.
 
 Not modelled: scatter, beam hardening, detector lag, pixel defects, image-intensifier S-distortion
-(only OpenCV's radial-tangential model), focal-spot penumbra (fold it into ``blur_sigma_px``), and a
-robot's inner structure (a polymer-bodied robot is one homogeneous effective attenuation).
+(only OpenCV's radial-tangential model), focal-spot penumbra (fold it into ``blur_sigma_px``), a
+robot's inner structure (a polymer-bodied robot is one homogeneous effective attenuation), and a
+robot half in, half out of a lumen (its centroid decides).
 """
 from __future__ import annotations
 
@@ -55,7 +59,8 @@ Bbox = tuple[int, int, int, int]  # x0, y0, x1, y1 (exclusive)
 
 @dataclass(frozen=True)
 class ImagingSettings:
-    """Exposure and detector model. Defaults resemble pulsed fluoroscopy on a flat panel.
+    """Exposure and detector model. Defaults resemble a pulsed fluoroscopy frame on a flat panel:
+    2000 detected photons per pixel in the open field (2.2 % quantum noise before the blur).
 
     ``field_nonuniformity``: heel gradient of +-f/2 across the width times a radial vignette down to
     1 - f/2 at the corners. ``full_scale_fraction``: the brightest flat-field pixel maps to this
