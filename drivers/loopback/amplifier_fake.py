@@ -30,10 +30,10 @@ thermal coupling between coils, power-supply faults, and the serial line rate (a
 from __future__ import annotations
 
 import logging
-import math
 import threading
 from collections import deque
 from dataclasses import dataclass
+from typing import Union
 
 import numpy as np
 
@@ -71,20 +71,24 @@ _OVER_CURRENT_MARGIN_A = 0.1
 _WATCHDOG_MIN_MS, _WATCHDOG_MAX_MS = 10, 10_000
 
 
+PerChannel = Union[float, tuple[float, ...]]
+
+
 @dataclass(frozen=True)
 class FakeAmplifierConfig:
-    """Ratings, power-on limits and coil physics of the loopback amplifier (SI units, one value for all
-    channels)."""
+    """Ratings, power-on limits and coil physics of the loopback amplifier (SI units). Ratings and
+    limits are the same on every channel; coil constants may differ per channel."""
 
     channels: int = 8
     rated_current_a: float = 12.0
     max_current_a: float = 10.0
     slew_a_per_s: float = 200.0
     watchdog_ms: int = 200
-    coil_resistance_ohm: float = 0.5
-    coil_inductance_h: float = 0.005          # tau = L/R = 10 ms
-    thermal_resistance_k_per_w: float = 1.0   # 50 K rise at 10 A continuous
-    thermal_time_constant_s: float = 60.0
+    # Coil constants: one value for every channel, or a tuple with one value per channel.
+    coil_resistance_ohm: PerChannel = 0.5
+    coil_inductance_h: PerChannel = 0.005          # tau = L/R = 10 ms
+    thermal_resistance_k_per_w: PerChannel = 1.0   # 50 K rise at 10 A continuous
+    thermal_time_constant_s: PerChannel = 60.0
     ambient_temperature_c: float = 25.0
     over_temperature_c: float = 80.0
     restart_temperature_c: float = 70.0
@@ -96,17 +100,28 @@ class FakeAmplifierConfig:
             raise ValueError(f"channels={self.channels}: the protocol carries 1..16")
         if not 0 < self.max_current_a <= self.rated_current_a:
             raise ValueError("need 0 < max_current_a <= rated_current_a")
-        if min(self.slew_a_per_s, self.coil_resistance_ohm, self.coil_inductance_h,
-               self.thermal_resistance_k_per_w, self.thermal_time_constant_s) <= 0:
-            raise ValueError("slew, resistance, inductance and thermal constants must be positive")
+        for name in ("coil_resistance_ohm", "coil_inductance_h", "thermal_resistance_k_per_w",
+                     "thermal_time_constant_s"):
+            values = np.atleast_1d(np.asarray(getattr(self, name), dtype=float))
+            if values.shape not in ((1,), (self.channels,)):
+                raise ValueError(f"{name}: one value or one per channel ({self.channels}), got {values.size}")
+            if not np.all(np.isfinite(values)) or np.any(values <= 0):
+                raise ValueError(f"{name} must be positive")
+        if self.slew_a_per_s <= 0:
+            raise ValueError("slew_a_per_s must be positive")
         if not _WATCHDOG_MIN_MS <= self.watchdog_ms <= _WATCHDOG_MAX_MS:
             raise ValueError(f"watchdog_ms must be in {_WATCHDOG_MIN_MS}..{_WATCHDOG_MAX_MS}")
         if not self.restart_temperature_c < self.over_temperature_c:
             raise ValueError("restart_temperature_c must be below over_temperature_c")
 
+    def per_channel(self, name: str) -> np.ndarray:
+        """A coil constant as one value per channel."""
+        return np.broadcast_to(np.asarray(getattr(self, name), dtype=float), (self.channels,)).copy()
+
     @property
-    def coil_time_constant_s(self) -> float:
-        return self.coil_inductance_h / self.coil_resistance_ohm
+    def coil_time_constant_s(self) -> np.ndarray:
+        """tau = L / R per channel (s)."""
+        return self.per_channel("coil_inductance_h") / self.per_channel("coil_resistance_ohm")
 
 
 @dataclass(frozen=True)
@@ -149,6 +164,10 @@ class FakeAmplifier:
         self._max_ma = np.full(n, round(cfg.max_current_a * 1000), dtype=np.int64)
         self._slew_ma_per_s = np.full(n, round(cfg.slew_a_per_s * 1000), dtype=np.int64)
         self._watchdog_ms = cfg.watchdog_ms
+        self._resistance_ohm = cfg.per_channel("coil_resistance_ohm")
+        self._tau_s = cfg.coil_time_constant_s
+        self._thermal_r_k_per_w = cfg.per_channel("thermal_resistance_k_per_w")
+        self._capacity_j_per_k = cfg.per_channel("thermal_time_constant_s") / self._thermal_r_k_per_w
         self._target = np.zeros(n)
         self._setpoint = np.zeros(n)
         self._actual = np.zeros(n)
@@ -162,7 +181,7 @@ class FakeAmplifier:
         self._last_valid = 0.0
         self._last_seq: int | None = None
         self._last_reply: tuple[int, int, bytes] | None = None   # (seq, type, frame) for retransmissions
-        self.applied: deque[AppliedCommand] = deque(maxlen=100_000)
+        self.applied: deque[AppliedCommand] = deque(maxlen=100_000)   # the latest accepted SET_CURRENTS
         self.duplicates = 0
         self.stale = 0
 
@@ -256,7 +275,7 @@ class FakeAmplifier:
             reason = NakReason.BAD_PAYLOAD if msg_type in set(MsgType) else NakReason.UNKNOWN_TYPE
             return encode_message(self._nak(msg_type, reason), seq)
         if isinstance(message, Hello):
-            self._last_seq = None   # a new session: any sequence number is accepted next
+            self._last_seq = None   # a new session: HELLO's own number is accepted whatever it is
         elif self._last_seq is not None:
             if seq == self._last_seq and self._last_reply and self._last_reply[:2] == (seq, msg_type):
                 # A retransmission of the request just executed: answer again, never execute twice.
@@ -431,18 +450,17 @@ class FakeAmplifier:
                 self._setpoint = self._setpoint + delta * (h / needed_s)
             if self._state is State.FAULT and not np.any(self._setpoint):
                 self._driving = False   # controlled ramp finished: output stage off
-        tau = cfg.coil_time_constant_s
-        decay = math.exp(-h / tau)
+        tau = self._tau_s
+        decay = np.exp(-h / tau)
         follow = self._setpoint if self._driving else np.zeros_like(self._actual)
         offset = self._actual - follow
         self._actual = follow + offset * decay
         # Mean of I^2 over the step for i(t) = follow + offset * exp(-t / tau), exactly.
         mean_i2 = (follow ** 2 + 2.0 * follow * offset * (tau / h) * (1.0 - decay)
                    + offset ** 2 * (tau / (2.0 * h)) * (1.0 - decay * decay))
-        heating_w = mean_i2 * cfg.coil_resistance_ohm
-        cooling_w = (self._temperature - cfg.ambient_temperature_c) / cfg.thermal_resistance_k_per_w
-        capacity_j_per_k = cfg.thermal_time_constant_s / cfg.thermal_resistance_k_per_w
-        self._temperature = self._temperature + (heating_w - cooling_w) * h / capacity_j_per_k
+        heating_w = mean_i2 * self._resistance_ohm
+        cooling_w = (self._temperature - cfg.ambient_temperature_c) / self._thermal_r_k_per_w
+        self._temperature = self._temperature + (heating_w - cooling_w) * h / self._capacity_j_per_k
 
 
 def make_default_fake() -> FakeAmplifier:

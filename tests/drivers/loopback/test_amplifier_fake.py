@@ -84,11 +84,25 @@ def test_current_follows_a_first_order_lag_with_tau_l_over_r() -> None:
     cfg = FakeAmplifierConfig(channels=3, slew_a_per_s=1e6, coil_inductance_h=0.01, coil_resistance_ohm=0.5)
     host = enabled_host(cfg)
     host.send(SetCurrents((2000, -1000, 0)))
-    host.wait(cfg.coil_time_constant_s, heartbeat_s=0.005)   # tau = 20 ms
+    host.wait(float(cfg.coil_time_constant_s[0]), heartbeat_s=0.005)   # tau = 20 ms
     expected = 1 - math.exp(-1)
     np.testing.assert_allclose(host.fake.measured_currents_a(), [2 * expected, -expected, 0], atol=5e-3)
     host.wait(0.2, heartbeat_s=0.02)
     np.testing.assert_allclose(host.fake.measured_currents_a(), [2.0, -1.0, 0.0], atol=1e-3)
+
+
+def test_each_coil_has_its_own_time_constant() -> None:
+    cfg = FakeAmplifierConfig(channels=2, slew_a_per_s=1e6, coil_inductance_h=(0.005, 0.02),
+                              coil_resistance_ohm=(0.5, 1.0))   # tau 10 ms and 20 ms
+    host = enabled_host(cfg)
+    host.send(SetCurrents((1000, 1000)))
+    host.wait(0.02, heartbeat_s=0.005)
+    np.testing.assert_allclose(host.fake.measured_currents_a(), [1 - math.exp(-2), 1 - math.exp(-1)], atol=5e-3)
+
+
+def test_per_channel_constants_must_match_the_channel_count() -> None:
+    with pytest.raises(ValueError, match="coil_inductance_h: one value or one per channel"):
+        FakeAmplifierConfig(channels=3, coil_inductance_h=(0.01, 0.02))
 
 
 def test_reference_ramps_at_the_slew_limit_along_a_straight_line() -> None:
