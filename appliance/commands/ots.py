@@ -67,6 +67,8 @@ def run(args: argparse.Namespace) -> int:
             raise InputDataError(f"tool definition {rom} does not exist")
     if getattr(args, "frames", None) is not None and args.frames < 1:
         raise InputDataError(f"--frames must be at least 1, got {args.frames}")
+    if not getattr(args, "rate", 1.0) > 0 or not args.timeout > 0:
+        raise InputDataError("--rate and --timeout must be positive")
 
     port = open_serial(args.port, baudrate=9600, timeout=0.05)
     with NDITracker(port, reply_timeout_s=args.timeout, clock=time.time) as tracker:

@@ -89,6 +89,8 @@ def test_clear_errors(pty_loopback: str, tmp_path: Path, capsys: pytest.CaptureF
     assert cli.main(["ots", "stream", "--port", pty_loopback, "--rom", str(tmp_path / "nope.rom")]) == 2
     err = capsys.readouterr().err
     assert "appliance ots: error: tool definition " in err and "nope.rom does not exist" in err
+    assert cli.main(["ots", "stream", "--port", pty_loopback, "--rom", str(ROM), "--rate", "0"]) == 2
+    assert "--rate and --timeout must be positive" in capsys.readouterr().err
     assert cli.main(["ots", "info", "--port", "/dev/does-not-exist"]) == 2
     assert "port '/dev/does-not-exist' does not exist" in capsys.readouterr().err
     empty = tmp_path / "empty_tool.rom"
