@@ -278,6 +278,10 @@ class Amplifier:
         round_trip_s = self._clock() - sent_at
         commanded = np.asarray(command_ma, dtype=float) / 1000.0
         self._previous_a, self._previous_t = commanded, now
+        if reply.clamped_mask:
+            # The host already scaled to its limits: the amplifier's differ (a config mismatch).
+            log.warning("set_currents seq %d: the amplifier itself scaled the vector (channels mask 0x%04X)",
+                        seq, reply.clamped_mask)
         if current_scale < 1.0 or slew_scale < 1.0:
             log.debug("set_currents seq %d scaled: current x%.4f, slew x%.4f", seq, current_scale, slew_scale)
         return SetResult(seq=seq, requested_a=requested, commanded_a=commanded, current_scale=current_scale,
