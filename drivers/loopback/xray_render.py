@@ -26,7 +26,7 @@ robot half in, half out of a lumen (its centroid decides).
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
 import cv2
@@ -102,7 +102,8 @@ class ViewTruth:
     in_view: bool = True             # some of the shadow falls on the detector
     fully_in_view: bool = True       # none of the shadow falls off the detector
     area_px: float = 0.0             # the shadow's area on the detector, in pixels (sum of coverage)
-    coverage: np.ndarray | None = None   # (bbox h, bbox w) fraction of each pixel the shadow covers
+    # (bbox h, bbox w): the fraction of each pixel the shadow covers
+    coverage: np.ndarray | None = field(default=None, repr=False)
 
 
 @dataclass(frozen=True)
@@ -271,10 +272,10 @@ class BiplaneRenderer:
         self._states = {name: _ViewState(view) for name, view in self.views.items()}
         flat_max = 0.0
         for state in self._states.values():
-            field = self._flat_field(state)
-            state.bg_counts = (field * self._static_transmission(state)).astype(np.float32)
+            flat = self._flat_field(state)
+            state.bg_counts = (flat * self._static_transmission(state)).astype(np.float32)
             state.bg_min = float(state.bg_counts.min())
-            flat_max = max(flat_max, float(field.max()))
+            flat_max = max(flat_max, float(flat.max()))
         s = settings
         # One gain for both planes so their gray levels are comparable, as with one generator.
         self.gain = s.full_scale_fraction * (s.max_value - s.dark_level) / flat_max
