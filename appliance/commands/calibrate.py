@@ -60,6 +60,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--distortion", default="none", choices=("none", "k1", "k1k2", "k1k2p", "full"),
                         help="OpenCV distortion terms to estimate (default none: a flat-panel detector)")
     parser.add_argument("--square-pixels", action="store_true", help="force fx = fy")
+    parser.add_argument("--fix-intrinsics", action="store_true",
+                        help="keep K and dist of --initial; refine only the poses (after the C-arm moved)")
     parser.add_argument("--bead-tolerance", type=float, default=0.0, metavar="MM",
                         help="jointly refine both views and the beads within this tolerance (default 0: beads exact)")
     parser.add_argument("--plate-p", type=Path, metavar="IMG",
@@ -132,7 +134,7 @@ def run(args: argparse.Namespace) -> int:
             correction_files[name] = str(corrections[name].save(args.out.with_name(f"{args.out.stem}_distortion_{name}.yaml")))
     options = CubeOptions(distortion=args.distortion, square_pixels=args.square_pixels,
                           max_radius_px=args.max_bead_radius_px, bead_tolerance_mm=args.bead_tolerance,
-                          focal_guess_px=args.focal_px)
+                          focal_guess_px=args.focal_px, fix_intrinsics=args.fix_intrinsics)
     result = calibrate_cube(images, phantom, initial=initial, references=references, options=options, progress=say,
                             corrections=corrections)
     extra: dict[str, Any] = {"images": {"p": str(args.p), "q": str(args.q)}}

@@ -139,8 +139,7 @@ def projector_from_references(points_mm: np.ndarray, reference_uv: dict[int, tup
     if len(rows) >= 4 and focal_guess_px:
         w, h = image_size
         K = np.array([[focal_guess_px, 0, (w - 1) / 2], [0, focal_guess_px, (h - 1) / 2], [0, 0, 1.0]])
-        flag = cv2.SOLVEPNP_SQPNP if len(rows) >= 3 else cv2.SOLVEPNP_ITERATIVE
-        ok, rvec, tvec = cv2.solvePnP(X[rows], uv, K, None, flags=flag)
+        ok, rvec, tvec = cv2.solvePnP(X[rows], uv, K, None, flags=cv2.SOLVEPNP_SQPNP)
         if not ok:
             raise CalibrationError(f"{what}: the marked reference beads give no consistent pose")
         return lambda points: cv2.projectPoints(points, rvec, tvec, K, None)[0].reshape(-1, 2)

@@ -51,6 +51,9 @@ class CubeOptions:
     # beads the joint problem separates, and freeing them only adds noise: benchmarks/calibration_sim.py).
     bead_tolerance_mm: float = 0.0
     focal_guess_px: float | None = None  # needed only with 4-5 marked reference beads
+    # Keep the intrinsics (K, dist) of the initial calibration and refine only each view's pose
+    # (solvePnP): for re-calibrating after the C-arm moved, with intrinsics known from an earlier run.
+    fix_intrinsics: bool = False
 
     @property
     def joint(self) -> bool:
@@ -94,6 +97,7 @@ class CubeResult:
             "phantom": self.phantom.source,
             "phantom_beads": len(self.phantom),
             "distortion_model": self.options.distortion,
+            "intrinsics": "kept from the initial calibration" if self.options.fix_intrinsics else "estimated",
         }
         for name, fit in self.fits.items():
             meta[f"reprojection_rms_px_{name}"] = round(fit.rms_px, 4)
@@ -112,8 +116,7 @@ def to_calibration(result: CubeResult, extra_metadata: Mapping[str, Any] | None 
     return Calibration.from_views(views["p"], views["q"], metadata)
 
 
-def _dlt_fit(name: str, phantom: Phantom, detections: BeadDetections, matches: Matches,
-             image_size: tuple[int, int]) -> ViewFit:
+def _dlt_fit(name: str, detections: BeadDetections, matches: Matches, image_size: tuple[int, int]) -> ViewFit:
     K, R, t = decompose(matches.P, what=f"view {name}")
     return ViewFit(name, K, np.zeros(5), R, t, image_size, matches.bead_rows,
                    detections.uv[matches.detection_rows], matches.residual_px, np.zeros(0, dtype=int))
@@ -170,11 +173,17 @@ def calibrate_cube(images: Mapping[str, np.ndarray], phantom: Phantom, *,
         say(f"view {name}: {len(found)} beads detected; matching to {len(phantom)} phantom beads")
         matches[name] = match_beads(phantom.points_mm, found.uv, projector, shift_search=shift_search,
                                     final_gate_px=options.final_gate_px, what=f"view {name}")
-        dlt_fits[name] = _dlt_fit(name, phantom, found, matches[name], image_size)
+        dlt_fits[name] = _dlt_fit(name, found, matches[name], image_size)
         d = dlt_fits[name]
         say(f"view {name}: DLT on {len(d.bead_rows)} beads, RMS {d.rms_px:.3f} px; refining")
-        fits[name] = refine_view(name, phantom.points_mm, d.bead_rows, d.uv, d.K, d.R, d.t, image_size,
-                                 distortion=options.distortion, square_pixels=options.square_pixels)
+        K0, dist0 = d.K, None
+        if options.fix_intrinsics:
+            if initial is None:
+                raise CalibrationError("fixed intrinsics need an initial calibration that holds them (--initial)")
+            K0, dist0 = initial.views[name].K, initial.views[name].dist
+        fits[name] = refine_view(name, phantom.points_mm, d.bead_rows, d.uv, K0, d.R, d.t, image_size,
+                                 distortion=options.distortion, square_pixels=options.square_pixels,
+                                 fix_intrinsics=options.fix_intrinsics, dist0=dist0)
     points = phantom.points_mm
     if options.joint:
         say("joint refinement of both views")

@@ -66,13 +66,15 @@ def _residuals(fit: ViewFit, points_mm: np.ndarray) -> np.ndarray:
     return np.linalg.norm(fit.project(points_mm[fit.bead_rows]) - fit.uv, axis=1)
 
 
-def _calibrate_once(name: str, X: np.ndarray, uv: np.ndarray, K0: np.ndarray, dist0: np.ndarray,
-                    image_size: tuple[int, int], distortion: str, square_pixels: bool,
+def _calibrate_once(name: str, X: np.ndarray, uv: np.ndarray, K0: np.ndarray, dist0: np.ndarray, R0: np.ndarray,
+                    t0: np.ndarray, image_size: tuple[int, int], distortion: str, square_pixels: bool,
                     fix_intrinsics: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     obj = X.reshape(-1, 1, 3).astype(np.float32)
     img = uv.reshape(-1, 1, 2).astype(np.float32)
     if fix_intrinsics:
-        ok, rvec, tvec = cv2.solvePnP(X, uv, K0, dist0, flags=cv2.SOLVEPNP_ITERATIVE)
+        rvec, _ = cv2.Rodrigues(R0)
+        ok, rvec, tvec = cv2.solvePnP(X, uv, K0, dist0, rvec.copy(), np.asarray(t0, np.float64).reshape(3, 1).copy(),
+                                      useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE)
         if not ok:
             raise CalibrationError(f"view {name}: solvePnP failed")
         rvec, tvec = cv2.solvePnPRefineLM(X, uv, K0, dist0, rvec, tvec)
@@ -96,33 +98,36 @@ def _calibrate_once(name: str, X: np.ndarray, uv: np.ndarray, K0: np.ndarray, di
 
 def refine_view(name: str, points_mm: np.ndarray, bead_rows: np.ndarray, uv: np.ndarray, K0: np.ndarray,
                 R0: np.ndarray, t0: np.ndarray, image_size: tuple[int, int], *, distortion: str = "none",
-                square_pixels: bool = True, fix_intrinsics: bool = False, dist0: np.ndarray | None = None,
-                outlier_sigma: float = 4.0) -> ViewFit:
-    """Refine one view from matched beads; drops correspondences above ``outlier_sigma`` robust sigmas."""
+                square_pixels: bool = False, fix_intrinsics: bool = False, dist0: np.ndarray | None = None,
+                outlier_sigma: float = 4.0, max_rounds: int = 4) -> ViewFit:
+    """Refine one view from matched beads; drops correspondences above ``outlier_sigma`` robust sigmas.
+
+    ``K0`` (and ``dist0``) seed ``calibrateCamera``; with ``fix_intrinsics`` they are kept and only the
+    pose is refined by ``solvePnP``, starting from ``R0``, ``t0``.
+    """
     if distortion not in DISTORTION_MODELS:
         raise CalibrationError(f"view {name}: unknown distortion model {distortion!r}; use one of {DISTORTION_MODELS}")
     X = np.asarray(points_mm, dtype=np.float64)
     rows = np.asarray(bead_rows, dtype=int)
     uv = np.asarray(uv, dtype=np.float64)
     dist = np.zeros(5) if dist0 is None else np.asarray(dist0, dtype=np.float64).ravel()[:5]
+    K, R, t = np.asarray(K0, dtype=np.float64), np.asarray(R0, dtype=np.float64), np.asarray(t0, dtype=np.float64)
     rejected = np.zeros(0, dtype=int)
-    for _ in range(3):
-        K, dist_fit, R, t = _calibrate_once(name, X[rows], uv, K0, dist, image_size, distortion, square_pixels,
-                                            fix_intrinsics)
+    for round_number in range(max_rounds):
+        K, dist_fit, R, t = _calibrate_once(name, X[rows], uv, K, dist, R, t, image_size, distortion,
+                                            square_pixels, fix_intrinsics)
         fit = ViewFit(name, K, dist_fit, R, t, image_size, rows, uv, np.zeros(len(rows)), rejected)
         residual = _residuals(fit, X)
         fit = replace(fit, residual_px=residual)
         # Robust scale (MAD), floored so that a near-perfect fit does not reject good beads for 0.05 px.
         sigma = max(1.4826 * float(np.median(residual)), 0.05)
         bad = residual > outlier_sigma * sigma + 0.25
-        if not bad.any() or len(rows) - bad.sum() < 8:
+        if not bad.any() or len(rows) - bad.sum() < 8 or round_number == max_rounds - 1:
             break
         rejected = np.concatenate([rejected, rows[bad]])
         rows, uv = rows[~bad], uv[~bad]
-        fit = replace(fit, bead_rows=rows, uv=uv, rejected_rows=rejected)
-        K0, R0, t0 = K, R, t  # start the next round from this one
-    log.info("view %s: refined on %d beads, RMS %.3f px, f = %.1f px, %d outliers", name, len(rows), fit.rms_px,
-             fit.K[0, 0], len(fit.rejected_rows))
+    log.info("view %s: refined on %d beads, RMS %.3f px, f = %.1f px, %d outliers", name, len(fit.bead_rows),
+             fit.rms_px, fit.K[0, 0], len(fit.rejected_rows))
     return fit
 
 
@@ -150,7 +155,7 @@ def _pack(fit: ViewFit, free_dist: list[int], square: bool) -> np.ndarray:
 
 def refine_jointly(fits: dict[str, ViewFit], points_mm: np.ndarray, *, bead_tolerance_mm: float = 0.05,
                    detection_sigma_px: float = 0.1, distortion: str = "none",
-                   square_pixels: bool = True) -> tuple[dict[str, ViewFit], np.ndarray]:
+                   square_pixels: bool = False) -> tuple[dict[str, ViewFit], np.ndarray]:
     """Bundle-adjust both views and the beads (prior: each bead within ``bead_tolerance_mm`` of nominal).
 
     Returns the refined fits and the refined bead positions (N,3). ``bead_tolerance_mm = 0`` keeps the

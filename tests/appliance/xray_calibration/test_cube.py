@@ -120,3 +120,14 @@ def test_detector_distortion_is_estimated(true_views: dict[str, TrueView], cube:
     _assert_recovers_truth(modelled, distorted)
     for fit in modelled.fits.values():
         assert fit.dist[0] == pytest.approx(0.6, abs=0.1)
+
+
+def test_pose_only_recalibration_with_known_intrinsics(cube_images: dict[str, np.ndarray], cube: Phantom,
+                                                      true_views: dict[str, TrueView],
+                                                      nominal_calibration: Calibration) -> None:
+    # The nominal calibration has the true intrinsics (only the poses were perturbed): solvePnP path.
+    result = calibrate_cube(cube_images, cube, initial=nominal_calibration, options=CubeOptions(fix_intrinsics=True))
+    _assert_recovers_truth(result, true_views)
+    for name, fit in result.fits.items():
+        np.testing.assert_array_equal(fit.K, nominal_calibration.views[name].K)
+    assert to_calibration(result).metadata["intrinsics"] == "kept from the initial calibration"
