@@ -86,6 +86,7 @@ class Blob:
     strength: float  # integrated weight: the robot's "mass" in attenuation units x pixels
     centroid_px: tuple[float, float]  # weighted centroid in image pixels (for candidate pairing)
     touches_border: bool  # the support reaches the edge of the searched region: the robot may be cut
+    width_px: float = 0.0  # the body's diameter from its weighted spread across the axis (4 sqrt(l2))
 
 
 def log_background(image: np.ndarray, scale_px: int = 48) -> np.ndarray:
@@ -249,10 +250,12 @@ def _blob_from_component(a: np.ndarray, smooth: np.ndarray, labels: np.ndarray, 
     if m["m00"] <= 0:
         return None
     window = Roi(region.x0 + wx0, region.y0 + wy0, region.x0 + wx1, region.y0 + wy1)
+    # A cylinder's chord profile 2 sqrt(r^2 - t^2) has variance r^2 / 4 across its axis.
+    _, minor, _ = _principal(m["mu20"], m["mu02"], m["mu11"], 1)
     return Blob(window=window, weights=weights, mask=mask, pixel_count=int(mask.sum()), peak=height,
                 baseline=baseline, sigma=sigma, strength=float(m["m00"]),
                 centroid_px=(window.x0 + m["m10"] / m["m00"], window.y0 + m["m01"] / m["m00"]),
-                touches_border=edge)
+                touches_border=edge, width_px=4.0 * float(np.sqrt(max(minor / m["m00"], 0.0625))))
 
 
 def _end_limits(smooth: np.ndarray, mask: np.ndarray, s: np.ndarray, s_lo: float, s_hi: float,

@@ -46,6 +46,9 @@ class RecognitionSettings(StrictModel):
     #: Weakest plausible robot: peak attenuation -log(I/I0) at least this (a physical floor for a metal
     #: body of >= 1 mm, not a gray level; it keeps an empty frame from "finding" noise or the vessel).
     min_peak_attenuation: float = Field(0.25, gt=0)
+    #: Weakest plausible robot material: peak attenuation over width, per mm (a metal robot is >= 0.17/mm
+    #: even for the polymer-bodied robots of Table 1; diluted iodine contrast is ~0.05/mm).
+    min_attenuation_per_mm: float = Field(0.1, ge=0)
     #: Largest aspect ratio sqrt(l1/l2) of a robot (a contrast-filled vessel is longer and thinner).
     max_elongation: float = Field(40.0, gt=1)
 

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from appliance.errors import InputDataError
-from appliance.geometry import Calibration, epipolar_distance_px, fundamental_matrix
+from appliance.geometry import Calibration, epipolar_distance_px, fundamental_matrix, triangulate
 from appliance.recognition.correspondence import pair_candidates, pairing_rms
 from appliance.recognition.features import Features2D, features
 from appliance.recognition.posture import Posture, ViewObservation
@@ -178,6 +178,10 @@ class PostureTracker:
                                 [b.strength for b in candidates["p"]], [b.strength for b in candidates["q"]],
                                 self.settings.epipolar_band_px)
         timings["correspondence"] += (time.perf_counter_ns() - start) / 1e3
+        pairs, faint = self._metal_only(pairs, candidates)
+        if not pairs and faint:
+            return None, (f"the only objects seen in both views attenuate {faint:.2f}/mm, like contrast "
+                          f"medium, not like the robot (>= {self.settings.min_attenuation_per_mm:g}/mm)")
         if not pairs:
             return None, (f"no pair of candidates satisfies the epipolar constraint within "
                           f"{self.settings.epipolar_band_px:g} px ({len(candidates['p'])} in p, "
@@ -200,6 +204,31 @@ class PostureTracker:
         timings["features"] += (time.perf_counter_ns() - start) / 1e3
         assert best is not None
         return (best[1], best[2]), ""
+
+    def _metal_only(self, pairs: list[tuple[int, int, float]], candidates: dict[str, list[Blob]]
+                    ) -> tuple[list[tuple[int, int, float]], float]:
+        """Drop pairs whose blobs attenuate too weakly per mm of their width to be the (metal) robot.
+
+        A cylinder's peak attenuation is ``mu D``; the width ``D`` in mm follows from the blob's width in
+        pixels and the magnification at the pair's triangulated position. A contrast-filled vessel seen
+        from the side has a small ``mu``; seen end-on it is strong in that view, but not in the other.
+        Returns the kept pairs and, if none is kept, the strongest rejected attenuation (/mm).
+        """
+        kept, strongest = [], 0.0
+        for i, j, distance in pairs:
+            blobs = {"p": candidates["p"][i], "q": candidates["q"][j]}
+            X = triangulate(self.calibration.p, self.calibration.q, blobs["p"].centroid_px, blobs["q"].centroid_px,
+                            optimal=False)[0]
+            if not np.all(np.isfinite(X)):
+                continue
+            mu = min(blob.peak / (blob.width_px * float(np.linalg.norm(X - self.calibration.views[name].source_mm))
+                                  / float(self.calibration.views[name].K[0, 0]))
+                     for name, blob in blobs.items())
+            if mu >= self.settings.min_attenuation_per_mm:
+                kept.append((i, j, distance))
+            else:
+                strongest = max(strongest, mu)
+        return kept, strongest
 
     def _centroid_mismatch_px(self, feats: dict[str, Features2D]) -> float:
         cp = self.calibration.p.undistort_points(feats["p"].centroid)
