@@ -8,7 +8,7 @@ from scipy.spatial import cKDTree
 from appliance.errors import CalibrationError, InputDataError
 from appliance.xray_calibration.beads import detect_beads
 from appliance.xray_calibration.phantom import Phantom
-from drivers.loopback.xray_render import BiplaneRenderer, ImagingSettings, TrueView
+from drivers.loopback.xray_render import BiplaneRenderer, TrueView
 
 
 @pytest.mark.parametrize("name", ["p", "q"])

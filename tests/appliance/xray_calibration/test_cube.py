@@ -131,3 +131,22 @@ def test_pose_only_recalibration_with_known_intrinsics(cube_images: dict[str, np
     for name, fit in result.fits.items():
         np.testing.assert_array_equal(fit.K, nominal_calibration.views[name].K)
     assert to_calibration(result).metadata["intrinsics"] == "kept from the initial calibration"
+
+
+def test_recognition_with_the_recovered_calibration_matches_the_true_one(
+        from_initial: CubeResult, true_views: dict[str, TrueView]) -> None:
+    from appliance.geometry import View
+    from appliance.recognition import PostureTracker
+    from drivers.loopback.xray_render import BiplaneRenderer, RobotBody, RobotPose
+
+    exact = Calibration.from_views(*(View(n, v.K, v.dist, v.R, v.t, v.image_size) for n, v in sorted(true_views.items())))
+    recovered = to_calibration(from_initial)
+    renderer = BiplaneRenderer(true_views, RobotBody(10.0, 2.0, 20.0, 1.0), seed=2)  # robot 1 of the paper
+    pose = RobotPose(np.array([6.0, -9.0, 4.0]), np.array([0.3, 0.5, 0.81]) / np.linalg.norm([0.3, 0.5, 0.81]))
+    pair = renderer.render(pose)
+    with_truth = PostureTracker(exact).process(pair.images["p"], pair.images["q"])
+    with_ours = PostureTracker(recovered).process(pair.images["p"], pair.images["q"])
+    assert with_truth.ok and with_ours.ok, (with_truth.reason, with_ours.reason)
+    assert np.linalg.norm(with_ours.centroid_mm - with_truth.centroid_mm) < 0.02
+    assert np.linalg.norm(with_ours.centroid_mm - pose.centroid_mm) < 0.2
+    assert np.degrees(np.arccos(min(1.0, float(with_ours.direction @ with_truth.direction)))) < 0.2
