@@ -78,6 +78,13 @@ def jsonable(value: Any, where: str = "") -> Any:
     raise TypeError(f"cannot record {where or 'value'}: {type(value).__name__} is not JSON data")
 
 
+def _check_options(frames_every: int, compression: str) -> None:
+    if frames_every < 1:
+        raise ValueError(f"frames_every must be >= 1, got {frames_every}")
+    if compression not in _COMPRESSIONS:
+        raise ValueError(f"compression must be one of {sorted(_COMPRESSIONS)}, got {compression!r}")
+
+
 def _encode(value: Mapping[str, Any], what: str) -> bytes:
     return json.dumps(jsonable(value, what), separators=(",", ":"), allow_nan=False).encode("utf-8")
 
@@ -89,10 +96,7 @@ class Recorder:
     def __init__(self, stream: IO[bytes], *, path: Path, config: Mapping[str, Any],
                  calibration: Mapping[str, Any], frames_every: int = 1, compression: str = "zstd",
                  fsync: bool = True, t0_s: float | None = None, max_unflushed_s: float = 0.1) -> None:
-        if frames_every < 1:
-            raise ValueError(f"frames_every must be >= 1, got {frames_every}")
-        if compression not in _COMPRESSIONS:
-            raise ValueError(f"compression must be one of {sorted(_COMPRESSIONS)}, got {compression!r}")
+        _check_options(frames_every, compression)
         self.path = path
         self.frames_every = int(frames_every)
         self._stream = stream
@@ -127,6 +131,7 @@ class Recorder:
                t0_s: float | None = None) -> Recorder:
         """Create a new recording at ``path`` (its folder is made; an existing file is never overwritten)."""
         path = Path(path)
+        _check_options(frames_every, compression)
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             stream = open(path, "xb")  # noqa: SIM115 (owned by the recorder, closed in close())

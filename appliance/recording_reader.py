@@ -195,6 +195,8 @@ class RecordingReader:
                         raise InputDataError(f"{self.path}: empty or cut off before the MCAP header") from None
                     if footer_seen:   # only the closing magic is missing: data and summary are all there
                         self.complete, self.stop_reason = True, None
+                    elif good_until >= size:
+                        self._stopped(f"ends at byte {size} without a footer: the recording was not closed")
                     else:
                         self._stopped(f"cut off at byte {size}: the record after byte {good_until} is incomplete")
                     return
