@@ -17,6 +17,7 @@ from drivers.amplifier import (
     AmplifierEvent,
     AmplifierLimits,
     EStopError,
+    OverCurrentError,
     OverTemperatureError,
     WatchdogError,
 )
@@ -162,6 +163,18 @@ def test_over_temperature_trips_and_clears_once_cool(server: PtyServer, fake: Fa
         fake.set_temperature_c(0, 40.0)
         amp.clear_fault()
         assert amp.status().state is State.DISABLED
+
+
+def test_over_current_cuts_the_output_and_is_a_typed_error(server: PtyServer, fake: FakeAmplifier) -> None:
+    with Amplifier(open_serial(server.path), ack_timeout_s=0.2) as amp:
+        amp.enable()
+        drive(amp, np.array([1.0, 0.0, 0.0, 0.0]), 0.05)
+        fake.inject_over_current(channel=3)
+        with pytest.raises(OverCurrentError) as info:
+            amp.set_currents(np.array([1.0, 0.0, 0.0, 0.0]))
+        assert info.value.faults & Fault.OVER_CURRENT and not fake.snapshot().output_on
+        amp.clear_fault()
+        amp.enable()
 
 
 def test_unplugged_link_times_out_and_the_amplifier_protects_itself(

@@ -160,6 +160,16 @@ def test_a_stale_command_is_refused_and_not_applied() -> None:
     assert host.send(Heartbeat(), seq=6).reason is NakReason.STALE_SEQUENCE
 
 
+def test_sequence_numbers_wrap_from_65535_to_0() -> None:
+    host = Host(FakeAmplifier(FakeAmplifierConfig(channels=3)))
+    host.send(Hello(), seq=0xFFFD)
+    host.send(Enable(), seq=0xFFFE)
+    assert isinstance(host.send(SetCurrents((1000, 0, 0)), seq=0xFFFF), SetCurrentsReply)
+    assert isinstance(host.send(SetCurrents((2000, 0, 0)), seq=0), SetCurrentsReply)
+    assert host.send(SetCurrents((3000, 0, 0)), seq=0xFFFF).reason is NakReason.STALE_SEQUENCE
+    assert [a.seq for a in host.fake.applied] == [0xFFFF, 0]
+
+
 def test_estop_cuts_output_and_cannot_be_cleared_while_pressed() -> None:
     host = enabled_host()
     host.send(SetCurrents((5000, 0, 0)))
