@@ -224,105 +224,145 @@ class AssemblerStats:
 @dataclass(frozen=True)
 class AssembledFrame:
     header: FrameHeader
-    payload: bytes
+    payload: bytes | bytearray   # exactly payload_length bytes, CRC checked; owned by the frame
 
 
 @dataclass
 class FrameAssembler:
-    """Fed bulk-transfer bytes, yields whole frames whose header and payload CRCs check out."""
+    """Fed bulk-transfer bytes, yields whole frames whose header and payload CRCs check out.
+
+    Two states. *Looking*: bytes gather in a small buffer until a magic and a valid header are found
+    (garbage before it is skipped, a header failing its checks is counted and the search goes on one
+    byte later). *Collecting*: the payload is copied straight from the transfers into a buffer of the
+    announced length, which becomes the frame: one copy per byte on the common path. The device ends a
+    transfer at the end of each frame, so a transfer that begins with a valid header while a payload
+    is being collected means the frame was cut short: it is counted as truncated and the new frame
+    starts at once. A complete payload whose CRC fails is counted as a bad CRC, or as truncated when a
+    magic inside it shows where the next frame began (a cut that did not end its transfer), and looking
+    resumes at that magic. Scanning every payload for the magic instead would cost more than the CRC.
+    """
 
     stats: AssemblerStats = field(default_factory=AssemblerStats)
 
     def __post_init__(self) -> None:
-        self._buf = bytearray()
-        self._header: FrameHeader | None = None
-        self._scan_from = HEADER_SIZE   # where to look for an early next header inside a pending payload
+        self._buf = bytearray()                  # looking: bytes not yet known to belong to a frame
+        self._header: FrameHeader | None = None  # collecting: the valid header ...
+        self._payload = bytearray()              # ... its payload buffer ...
+        self._filled = 0                         # ... and how much of it has arrived
 
     @property
     def buffered(self) -> int:
-        return len(self._buf)
+        return len(self._buf) + (HEADER_SIZE + self._filled if self._header is not None else 0)
 
     def reset(self) -> None:
         """Forget a partial frame (after a stall the device restarts at a frame boundary)."""
-        if self._buf:
-            self.stats.skipped_bytes += len(self._buf)
+        self.stats.skipped_bytes += self.buffered
         self._buf.clear()
         self._header = None
-        self._scan_from = HEADER_SIZE
+        self._payload = bytearray()
+        self._filled = 0
 
     def feed(self, data: bytes | bytearray | memoryview) -> list[AssembledFrame]:
-        self._buf += data
         out: list[AssembledFrame] = []
-        buf = self._buf
+        view = memoryview(data).cast("B") if isinstance(data, memoryview) else memoryview(data)
         while True:
-            if self._header is None:
-                start = buf.find(FRAME_MAGIC)
-                if start < 0:
-                    # Keep a tail that may be the first bytes of a magic split across transfers.
-                    keep = min(len(buf), len(FRAME_MAGIC) - 1)
-                    self._drop(len(buf) - keep)
-                    break
-                self._drop(start)
-                if len(buf) < HEADER_SIZE:
-                    break
+            if self._header is not None:
+                view = self._collect(view, out)
+                if self._header is not None:
+                    return out               # all bytes went into the payload; wait for more
+                continue
+            if not self._buf and len(view) >= HEADER_SIZE and view[:4] == FRAME_MAGIC:
+                # Common path: a transfer starts with a header; no copy through the looking buffer.
                 try:
-                    self._header = FrameHeader.decode(buf)
-                except FrameError:
-                    self.stats.corrupt_headers += 1
-                    self._drop(1)      # resynchronise on the next magic
+                    self._start(FrameHeader.decode(view[:HEADER_SIZE]))
+                    view = view[HEADER_SIZE:]
                     continue
-                self._scan_from = HEADER_SIZE
-            need = HEADER_SIZE + self._header.payload_length
-            inside = self._next_header_inside(min(need, len(buf)))
-            if inside == "found":
-                continue
-            if len(buf) < need or inside == "wait":
-                break
-            payload = bytes(buf[HEADER_SIZE:need])
-            header = self._header
-            self._header = None
-            if zlib.crc32(payload) != header.payload_crc:
-                # A magic inside the payload (its header damaged too) still marks where the frame was cut.
-                cut = buf.find(FRAME_MAGIC, HEADER_SIZE, need)
-                if cut >= 0:
-                    self.stats.truncated += 1
-                    self._drop(cut)
-                else:
-                    self.stats.bad_crc += 1
-                    self._drop(need)
-                continue
-            del buf[:need]
-            self.stats.frames += 1
-            out.append(AssembledFrame(header, payload))
-        return out
+                except FrameError:
+                    pass
+            if len(view):
+                self._buf += view
+                view = view[len(view):]
+            if not self._look():
+                return out
+            # A valid header was found at the start of the looking buffer: its bytes feed the payload.
+            pending = bytes(self._buf[HEADER_SIZE:])
+            header = FrameHeader.decode(self._buf)
+            self._buf.clear()
+            self._start(header)
+            view = memoryview(pending)
 
-    def _next_header_inside(self, end: int) -> str:
-        """Look for a valid header starting inside the pending frame's payload before ``end``.
-
-        ``"found"``: the pending frame was truncated; it is dropped and the buffer starts at the new
-        header. ``"wait"``: a magic sits there but its header is not complete yet. ``"none"``: nothing.
-        """
+    # -- looking ---------------------------------------------------------------------------------
+    def _look(self) -> bool:
+        """Find a valid header at the start of the looking buffer (dropping what precedes it)."""
         buf = self._buf
-        pos = self._scan_from
         while True:
-            hit = buf.find(FRAME_MAGIC, pos, end)
-            if hit < 0:
-                self._scan_from = max(HEADER_SIZE, end - len(FRAME_MAGIC) + 1)
-                return "none"
-            if hit + HEADER_SIZE > len(buf):
-                self._scan_from = hit      # look again once the whole candidate header is here
-                return "wait"
+            start = buf.find(FRAME_MAGIC)
+            if start < 0:
+                # Keep a tail that may be the first bytes of a magic split across transfers.
+                self._drop(len(buf) - min(len(buf), len(FRAME_MAGIC) - 1))
+                return False
+            self._drop(start)
+            if len(buf) < HEADER_SIZE:
+                return False
             try:
-                FrameHeader.decode(bytes(buf[hit:hit + HEADER_SIZE]))
+                FrameHeader.decode(buf)
+                return True
             except FrameError:
-                pos = hit + 1              # pixel data that happens to contain the magic
-                continue
-            self.stats.truncated += 1
-            self._header = None
-            self._drop(hit)
-            return "found"
+                self.stats.corrupt_headers += 1
+                self._drop(1)
 
     def _drop(self, n: int) -> None:
         if n > 0:
             self.stats.skipped_bytes += n
             del self._buf[:n]
+
+    # -- collecting ------------------------------------------------------------------------------
+    def _start(self, header: FrameHeader) -> None:
+        self._header = header
+        self._payload = bytearray(header.payload_length)
+        self._filled = 0
+
+    def _collect(self, view: memoryview, out: list[AssembledFrame]) -> memoryview:
+        """Copy payload bytes from ``view``; returns what is left of it."""
+        header = self._header
+        assert header is not None
+        if self._filled and self._valid_header_at_start(view):
+            self.stats.truncated += 1
+            self.stats.skipped_bytes += HEADER_SIZE + self._filled
+            self._header = None
+            self._payload = bytearray()
+            return view
+        take = min(len(view), header.payload_length - self._filled)
+        self._payload[self._filled:self._filled + take] = view[:take]
+        self._filled += take
+        rest = view[take:]
+        if self._filled < header.payload_length:
+            return rest
+        payload = self._payload
+        self._header = None
+        self._payload = bytearray()
+        if zlib.crc32(payload) == header.payload_crc:
+            self.stats.frames += 1
+            out.append(AssembledFrame(header, payload))
+            return rest
+        # A magic inside the payload (its header damaged too) still marks where the frame was cut.
+        cut = payload.find(FRAME_MAGIC)
+        if cut >= 0:
+            self.stats.truncated += 1
+            self.stats.skipped_bytes += HEADER_SIZE + cut
+            self._buf = bytearray(payload[cut:])
+            self._buf += rest
+            return memoryview(b"")
+        self.stats.bad_crc += 1
+        self.stats.skipped_bytes += HEADER_SIZE + len(payload)
+        return rest
+
+    @staticmethod
+    def _valid_header_at_start(view: memoryview) -> bool:
+        if len(view) < HEADER_SIZE or view[:4] != FRAME_MAGIC:
+            return False
+        try:
+            FrameHeader.decode(view[:HEADER_SIZE])
+            return True
+        except FrameError:
+            return False

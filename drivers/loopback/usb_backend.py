@@ -148,7 +148,8 @@ class FakeGrabberDevice:
         self.frames_overrun = 0
         self._t0 = 0.0
         self._next_number = 0
-        self._current: bytes = b""       # bytes of the frame on the wire
+        self._segments: list[memoryview] = []   # the frame on the wire: header, payload (no copy of the pixels)
+        self._length = 0
         self._offset = 0
         self._fault: Fault | None = None
         self._fault_at = -1              # byte offset where a stall/timeout fires
@@ -187,11 +188,11 @@ class FakeGrabberDevice:
                 self._t0 = origin(self._clock) if origin is not None else self._clock()
                 first = getattr(self.feed, "first_frame_after", None)
                 self._next_number = first(self._clock() - self._t0) if first is not None and self.realtime else 0
-                self._current, self._offset = b"", 0
+                self._put_on_wire([])
                 return None
             if request == proto.Request.STOP:
                 self.streaming = False
-                self._current, self._offset = b"", 0
+                self._put_on_wire([])
                 return None
             if request == proto.Request.SET_FRAME_RATE:
                 rate = proto.decode_u32(bytes(data or b""), "SET_FRAME_RATE") / 1000.0
@@ -205,7 +206,8 @@ class FakeGrabberDevice:
         raise _usb_error(errno.EPIPE, f"unknown vendor request {request:#04x}")
 
     # -- bulk IN ---------------------------------------------------------------------------------
-    def bulk_read(self, size: int, timeout_ms: int) -> bytes:
+    def bulk_read(self, buffer: memoryview, timeout_ms: int) -> int:
+        """Fill ``buffer`` with the next transfer (at most to the end of the current frame); returns its length."""
         deadline = time.monotonic() + (timeout_ms / 1000.0 if timeout_ms else 3600.0)
         while True:
             with self._lock:
@@ -214,12 +216,12 @@ class FakeGrabberDevice:
                 if self.halted:
                     raise _usb_error(errno.EPIPE, "Pipe error")
                 if self.streaming:
-                    if self._offset >= len(self._current):
+                    if self._offset >= self._length:
                         wait = self._load_next_frame()
                     else:
                         wait = 0.0
                     if wait <= 0:
-                        return self._send(size)
+                        return self._send(buffer)
                 else:
                     wait = 0.01
             remaining = deadline - time.monotonic()
@@ -232,7 +234,12 @@ class FakeGrabberDevice:
             if self.halted:
                 # The aborted frame is gone; the device resumes at the next frame boundary.
                 self.halted = False
-                self._current, self._offset = b"", 0
+                self._put_on_wire([])
+
+    def _put_on_wire(self, segments: list[bytes | memoryview]) -> None:
+        self._segments = [memoryview(segment) for segment in segments]
+        self._length = sum(len(segment) for segment in self._segments)
+        self._offset = 0
 
     def _load_next_frame(self) -> float:
         """Put the next due frame on the wire; returns 0, or the seconds until one is due."""
@@ -259,16 +266,17 @@ class FakeGrabberDevice:
                     fault = kind
                     break
                 roll -= rate
-        wire = self._encode(frame)
+        header, payload = self._encode(frame)
         self._fault, self._fault_at = fault, -1
         if fault is not None:
             self.faults_injected[number] = fault
-            wire = self._apply(fault, wire)
-        self._current, self._offset = wire, 0
+            self._put_on_wire([self._apply(fault, header + payload)])
+        else:
+            self._put_on_wire([header, payload])
         self.frames_sent += 1
         return 0.0
 
-    def _encode(self, frame: DeviceFrame) -> bytes:
+    def _encode(self, frame: DeviceFrame) -> tuple[bytes, bytes]:
         image = frame.image
         cached = self._payloads.get(id(image))
         if cached is None or cached[0] is not image:
@@ -281,7 +289,7 @@ class FakeGrabberDevice:
         fmt = proto.PixelFormat.MONO16 if image.dtype == np.uint16 else proto.PixelFormat.MONO8
         header = proto.FrameHeader(self.feed.plane, fmt, frame.number, round(frame.device_time_s * 1e6),
                                    round(frame.exposure_s * 1e6), image.shape[1], image.shape[0], len(payload), crc)
-        return header.encode() + payload
+        return header.encode(), payload
 
     def _apply(self, fault: Fault, wire: bytes) -> bytes:
         data = bytearray(wire)
@@ -297,10 +305,10 @@ class FakeGrabberDevice:
             self._fault_at = proto.HEADER_SIZE + (len(data) - proto.HEADER_SIZE) // 2
         return bytes(data)
 
-    def _send(self, size: int) -> bytes:
-        end = min(len(self._current), self._offset + size)
+    def _send(self, buffer: memoryview) -> int:
+        end = min(self._length, self._offset + len(buffer))
         if self._fault is Fault.SHORT_TRANSFERS:
-            end = min(end, self._offset + int(self._rng.integers(1, max(2, min(700, len(self._current) // 3)))))
+            end = min(end, self._offset + int(self._rng.integers(1, max(2, min(700, self._length // 3)))))
         if self._fault_at >= 0 and self._offset >= self._fault_at:
             fault, self._fault_at = self._fault, -1
             if fault is Fault.STALL:
@@ -309,9 +317,16 @@ class FakeGrabberDevice:
             raise _usb_error(errno.ETIMEDOUT, "Operation timed out")
         if self._fault_at >= 0:
             end = min(end, self._fault_at)
-        chunk = self._current[self._offset:end]
+        # Copy straight from the frame's segments into the host's buffer, as the controller's DMA would.
+        written, position = 0, 0
+        for segment in self._segments:
+            lo, hi = max(self._offset, position), min(end, position + len(segment))
+            if lo < hi:
+                buffer[written:written + hi - lo] = segment[lo - position:hi - position]
+                written += hi - lo
+            position += len(segment)
         self._offset = end
-        return chunk
+        return written
 
 
 class FakeGrabberBackend(usb.backend.IBackend):
@@ -402,9 +417,7 @@ class FakeGrabberBackend(usb.backend.IBackend):
             raise _usb_error(errno.EPIPE, f"no endpoint {ep:#04x}")
         if dev.claimed_by is not handle:
             raise _usb_error(errno.EBUSY, "interface not claimed")
-        chunk = dev.bulk_read(len(buff) * buff.itemsize, timeout)
-        memoryview(buff).cast("B")[:len(chunk)] = chunk
-        return len(chunk)
+        return dev.bulk_read(memoryview(buff).cast("B"), timeout)
 
     def ctrl_transfer(self, handle: SimpleNamespace, bmRequestType: int, bRequest: int, wValue: int,  # noqa: N803
                       wIndex: int, data: Any, timeout: int) -> int:  # noqa: N803

@@ -162,3 +162,16 @@ def test_contract_frames_in_order_with_sane_timestamps(grabber: FrameSource) -> 
     assert all(b.device_time_s > a.device_time_s and b.host_time_s >= a.host_time_s for a, b in zip(got, got[1:]))
     assert all((f.width, f.height) == (grabber.width, grabber.height) for f in got)
     assert grabber.counters.frames == 10 and grabber.counters.corrupt == 0
+
+
+def test_the_shipped_udev_rule_matches_the_protocol_ids() -> None:
+    import re
+    from pathlib import Path
+
+    from firmware_protocol import usb_grabber as proto
+
+    rules = (Path(__file__).resolve().parents[2] / "config/udev/99-xray-grabber.rules").read_text()
+    active = [line for line in rules.splitlines() if line and not line.startswith("#")]
+    assert active and all(f'ATTR{{idVendor}}=="{proto.VENDOR_ID:04x}"' in line and
+                          f'ATTR{{idProduct}}=="{proto.PRODUCT_ID:04x}"' in line for line in active)
+    assert any(re.search(r'MODE="0660", GROUP="plugdev"', line) for line in active)
