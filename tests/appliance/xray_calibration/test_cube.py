@@ -150,3 +150,13 @@ def test_recognition_with_the_recovered_calibration_matches_the_true_one(
     assert np.linalg.norm(with_ours.centroid_mm - with_truth.centroid_mm) < 0.02
     assert np.linalg.norm(with_ours.centroid_mm - pose.centroid_mm) < 0.2
     assert np.degrees(np.arccos(min(1.0, float(with_ours.direction @ with_truth.direction)))) < 0.2
+
+
+def test_four_marked_beads_with_a_focal_guess(cube_images: dict[str, np.ndarray], cube: Phantom,
+                                             true_views: dict[str, TrueView]) -> None:
+    ids = list(cube.references)[:4]
+    marked = {name: {bead: tuple(true_views[name].project(cube.points_mm[cube.index(bead)][None])[0] + 0.5)
+                     for bead in ids} for name in ("p", "q")}
+    guess = 1.1 * true_views["p"].K[0, 0]  # 10 % off, as a nominal source-detector distance would be
+    result = calibrate_cube(cube_images, cube, references=marked, options=CubeOptions(focal_guess_px=guess))
+    _assert_recovers_truth(result, true_views)
