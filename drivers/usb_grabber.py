@@ -3,8 +3,10 @@
 :func:`find_grabber` finds the device (by VID:PID and optionally serial number) with ``usb.core.find``
 and translates pyusb's failures into appliance errors; :class:`UsbGrabber` takes that ready
 ``usb.core.Device`` (tests hand it one found through the fake backend of
-``drivers.loopback.usb_backend``; the bench, one found through libusb). On open it claims the vendor
-interface, identifies the grabber, sets rate and exposure when asked and starts acquisition; ``read``
+``drivers.loopback.usb_backend``; the bench, one found through libusb). Constructing it asks the
+grabber who it is (IDENTIFY: plane, size, pixel formats), so a source knows its plane before it is
+opened; on open it claims the vendor interface, sets rate and exposure when asked and starts
+acquisition (STOP and release on close); ``read``
 pulls bulk transfers of any size into a :class:`~firmware_protocol.usb_grabber.FrameAssembler`, which
 hands on only frames whose header and payload CRCs check out. Corrupt headers, bad CRCs and truncated
 frames are counted (``counters.corrupt``, details in :attr:`UsbGrabber.link_stats`) and skipped; an
@@ -194,12 +196,15 @@ class UsbGrabber(FrameSource):
 
     def _open_internal(self) -> None:
         try:
+            # Setting the configuration again would reset the device; only do it when none is active.
             try:
-                self.device.set_configuration()
+                active = self.device.get_active_configuration().bConfigurationValue
             except usb.core.USBError as err:
-                # Already configured by the OS and held by us is fine; busy/permission are not.
-                if getattr(err, "errno", None) != errno.EBUSY:
+                if getattr(err, "errno", None) in (errno.EACCES, errno.EPERM, errno.ENODEV, errno.EBUSY):
                     raise
+                active = None
+            if active != 1:
+                self.device.set_configuration(1)
             usb.util.claim_interface(self.device, proto.INTERFACE_NUMBER)
         except usb.core.USBError as err:
             raise translate_usb_error(err, f"{self.name}: open") from err

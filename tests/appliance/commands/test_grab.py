@@ -64,11 +64,11 @@ def test_time_matching_and_no_output(capsys: pytest.CaptureFixture[str]) -> None
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["--source", "loopback://?plane=p"], "exactly two --source"),
-    (["--source", "loopback://?plane=p", "--source", "loopback://?plane=p"], "planes p and q"),
-    (["--source", "usb://1209:0001", "--source", "loopback://?plane=q"], "no USB"),
-    (["--source", "v4l2:///dev/video93?plane=p", "--source", "loopback://?plane=q"], "no such video device"),
-    (["--source", "file:///nonexistent?plane=p", "--source", "loopback://?plane=q"], "does not exist"),
+    (["--source", f"{LOOP}&plane=p"], "exactly two --source"),
+    (["--source", f"{LOOP}&plane=p", "--source", f"{LOOP}&plane=p"], "planes p and q"),
+    (["--source", "usb://1209:0001", "--source", f"{LOOP}&plane=q"], "no USB"),
+    (["--source", "v4l2:///dev/video93?plane=p", "--source", f"{LOOP}&plane=q"], "no such video device"),
+    (["--source", "file:///nonexistent?plane=p", "--source", f"{LOOP}&plane=q"], "does not exist"),
 ])
 def test_clear_errors(argv: list[str], message: str, capsys: pytest.CaptureFixture[str]) -> None:
     assert cli.main(["grab", *argv, "--frames", "2"]) == 2
