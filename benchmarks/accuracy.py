@@ -138,7 +138,9 @@ def run_robot(robot_id: int, spec: Any, poses: list[RobotPose], seed: int, calib
               ) -> tuple[dict[str, list[dict[str, Any]]], float]:
     body = RobotBody(spec.length_mm, spec.diameter_mm, spec.tip_angle_deg, spec.attenuation_per_mm)
     renderer = BiplaneRenderer(views, body, vessel=phantom, settings=imaging, seed=seed + robot_id)
-    trackers = {name: PostureTracker(calibration, RecognitionSettings(estimator=name)) for name in ESTIMATORS}
+    # The detector's offset is known on a bench from its dark-frame calibration; here from the simulator.
+    trackers = {name: PostureTracker(calibration, RecognitionSettings(estimator=name, dark_level=imaging.dark_level))
+                for name in ESTIMATORS}
     scores: dict[str, list[dict[str, Any]]] = {name: [] for name in ESTIMATORS}
     elapsed = 0.0
     for i, pose in enumerate(poses):

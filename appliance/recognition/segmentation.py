@@ -89,7 +89,7 @@ class Blob:
     width_px: float = 0.0  # the body's diameter from its weighted spread across the axis (4 sqrt(l2))
 
 
-def log_background(image: np.ndarray, scale_px: int = 48) -> np.ndarray:
+def log_background(image: np.ndarray, scale_px: int = 48, dark_level: float = 0.0) -> np.ndarray:
     """Full-frame ``log(B)`` (float32) of the open-field background with dark objects removed.
 
     Downsampling by ``f`` averages ``f^2`` pixels (less noise, cheaper filters); the closing at
@@ -99,7 +99,7 @@ def log_background(image: np.ndarray, scale_px: int = 48) -> np.ndarray:
     h, w = image.shape[:2]
     f = max(1, min(8, scale_px // 12))
     small = cv2.resize(image.astype(np.float32), (max(1, w // f), max(1, h // f)), interpolation=cv2.INTER_AREA)
-    logs = np.log(np.maximum(small, 1.0))
+    logs = np.log(np.maximum(small - np.float32(dark_level), 1.0))
     k = max(3, (scale_px // f) | 1)
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
     closed = cv2.morphologyEx(logs, cv2.MORPH_CLOSE, kernel, borderType=cv2.BORDER_REPLICATE)
@@ -107,10 +107,17 @@ def log_background(image: np.ndarray, scale_px: int = 48) -> np.ndarray:
     return cv2.resize(closed, (w, h), interpolation=cv2.INTER_LINEAR)
 
 
-def attenuation(image: np.ndarray, log_bg: np.ndarray, region: Roi) -> np.ndarray:
-    """``-log(I / B)`` (float32) on ``region``; slices only, no full-frame copy."""
+def attenuation(image: np.ndarray, log_bg: np.ndarray, region: Roi, dark_level: float = 0.0) -> np.ndarray:
+    """``-log(I / B)`` (float32) on ``region``; slices only, no full-frame copy.
+
+    ``I`` is the gray level minus the detector's dark level (its output with no X-rays): attenuation
+    is a ratio of photon counts, and an offset left in would compress the robot's thick parts. Gray
+    levels at or below the dark level (no photon through a dense part) count as 1.
+    """
     sl = region.slices
     raw = image[sl].astype(np.float32)
+    if dark_level:
+        raw -= np.float32(dark_level)
     np.maximum(raw, 1.0, out=raw)
     return log_bg[sl] - np.log(raw)
 
@@ -301,7 +308,7 @@ def segment(image: np.ndarray, log_bg: np.ndarray, roi: Roi | None = None,
     """
     settings = settings or RecognitionSettings()
     region = roi or Roi.full(image.shape)
-    a = attenuation(image, log_bg, region)
+    a = attenuation(image, log_bg, region, settings.dark_level)
     sigma = noise_sigma(a)
     if not np.isfinite(sigma) or sigma <= 0:
         sigma = 1e-3

@@ -22,6 +22,10 @@ class RecognitionSettings(StrictModel):
     estimator: Literal["weighted", "paper"] = "weighted"
 
     # -- segmentation ---------------------------------------------------------------------------------
+    #: The detector's gray level with no X-rays (its offset, from the detector's calibration). Attenuation
+    #: is log(I0 / I) of photon counts, so the offset must come off first. The simulated flat panel of
+    #: drivers/loopback/xray_render.py has 1000.
+    dark_level: float = Field(0.0, ge=0)
     #: Size (px) of the grey closing that estimates the open-field background; larger than any robot's width.
     background_scale_px: int = Field(48, ge=8, le=512)
     #: Candidate pixels: smoothed attenuation above this many noise standard deviations.

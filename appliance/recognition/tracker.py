@@ -165,7 +165,8 @@ class PostureTracker:
         start = time.perf_counter_ns()
         candidates: dict[str, list[Blob]] = {}
         for name in VIEWS:
-            self._log_bg[name] = log_background(images[name], self.settings.background_scale_px)
+            self._log_bg[name] = log_background(images[name], self.settings.background_scale_px,
+                                                 self.settings.dark_level)
             candidates[name] = segment(images[name], self._log_bg[name], None, self.settings)
         timings["segmentation"] += (time.perf_counter_ns() - start) / 1e3
         self._last_search = "full"
