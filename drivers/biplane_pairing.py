@@ -13,6 +13,7 @@
 A pending frame is abandoned (counted as unpaired for its plane) as soon as the other plane has moved
 past it: a later number (``number``) or a time later than its own plus the skew (``time``). Sources
 deliver in order, so such a frame can never be paired. ``flush()`` abandons whatever still waits.
+When a plane's frame number goes backwards (its grabber restarted), pairing by number starts over.
 
 Interleaved exposures (the planes alternate to reduce scatter) are flagged on the pair when the two
 exposure windows ``[device_time, device_time + exposure]`` do not overlap (``interleaved="auto"``, the
@@ -101,6 +102,13 @@ class BiplanePairer:
         if plane not in self._pending:
             raise ValueError(f"frame from unknown plane {plane!r}")
         other = "q" if plane == "p" else "p"
+        previous = self._newest[plane]
+        if self.match == "number" and previous is not None and frame.number <= previous.number:
+            # The grabber restarted its counter (reconnected, re-armed): old numbers mean nothing now.
+            log.info("plane %s frame number went from %d to %d: pairing starts over", plane, previous.number,
+                     frame.number)
+            self.flush()
+            self._newest[other] = None
         self._newest[plane] = frame
         # The other plane's frames that this one has moved past can never pair any more.
         self._abandon_passed(other, frame)

@@ -76,6 +76,17 @@ def test_latest_mode_never_builds_up_latency() -> None:
     assert pairer.latest().number == 9
 
 
+def test_a_restarted_counter_starts_pairing_over() -> None:
+    pairer = BiplanePairer(match="number", mode="all")
+    for f in interleave(stream_of("p", [100, 101]), stream_of("q", [100, 101])):
+        pairer.push(f)
+    pairer.push(frame("p", 102, 102 / 30))          # never completed: both grabbers restart instead
+    for f in interleave(stream_of("q", [0, 1, 2], offset=4.0), stream_of("p", [0, 1, 2], offset=4.0)):
+        pairer.push(f)
+    assert [pairer.pop().number for _ in range(pairer.ready)] == [100, 101, 0, 1, 2]
+    assert pairer.counters.unpaired_p == 1 and pairer.counters.unpaired_q == 0
+
+
 def test_by_time_with_jitter_pairs_within_skew_and_reports_it() -> None:
     rng = np.random.default_rng(7)
     n = 100
