@@ -391,20 +391,23 @@ class BiplaneRenderer:
             (x0, y0, x1, y1), transmission = patch
             block = np.s_[y0:y1, x0:x1]
             counts = state.bg_counts[block] * transmission
-        low = state.bg_min < _POISSON_EXACT_BELOW or (
-            counts is not None and counts.size > 0 and float(counts.min()) < _POISSON_EXACT_BELOW)
         if not s.noise:
             image = state.bg_dn.copy()
             if block is not None:
                 image[block] = offset + gain * counts
-        elif low:
-            image = self._exact_poisson(state, block, counts) * gain + offset
+        elif state.bg_min < _POISSON_EXACT_BELOW:
+            image = self._exact_poisson(state, block, counts) * gain + offset   # very low dose
         else:
             z = self._unit_normals(state.h, state.w)
             image = z * state.bg_sd_dn
             image += state.bg_dn
             if block is not None:
-                image[block] = offset + gain * (counts + np.sqrt(counts) * z[block])
+                noisy = counts + np.sqrt(counts) * z[block]
+                # Behind a dense magnet only a few photons arrive: draw those exactly.
+                low = counts < _POISSON_EXACT_BELOW
+                if low.any():
+                    noisy[low] = self._rng.poisson(counts[low])
+                image[block] = offset + gain * noisy
         if s.blur_sigma_px > 0:
             image = cv2.GaussianBlur(image, (0, 0), s.blur_sigma_px, borderType=cv2.BORDER_REFLECT)
         np.clip(image, 0, s.max_value, out=image)

@@ -319,6 +319,31 @@ def test_low_counts_are_exact_poisson() -> None:
     np.testing.assert_allclose(photons, np.round(photons), atol=0.5 / renderer.gain + 1e-9)
 
 
+def test_few_photons_behind_a_dense_magnet_are_exact_poisson() -> None:
+    views = biplane_views(**SMALL)
+    dense = RobotBody(10.0, 2.0, 20.0, attenuation_per_mm=2.5)   # NdFeB: <1 % gets through 2 mm
+    pose = RobotPose(np.zeros(3), np.array([0.2, 0.3, 1.0]))
+    expected = BiplaneRenderer(views, dense, settings=ImagingSettings(
+        noise=False, blur_sigma_px=0.0)).render(pose)
+    noisy = BiplaneRenderer(views, dense, settings=ImagingSettings(blur_sigma_px=0.0), seed=14)
+    core_means, core_counts = [], []
+    for _ in range(4):
+        pair = noisy.render(pose)
+        for name in views:
+            mean = noisy.to_photons(expected.images[name])
+            photons = noisy.to_photons(pair.images[name])
+            core = mean < 30
+            assert core.sum() > 30
+            np.testing.assert_allclose(photons[core], np.round(photons[core]), atol=0.02)
+            core_means.append(mean[core])
+            core_counts.append(photons[core])
+    means, counts = np.concatenate(core_means), np.concatenate(core_counts)
+    assert counts.min() >= 0
+    # Unbiased and with Poisson variance: the standardised residuals average 0 and have variance 1.
+    z = (counts - means) / np.sqrt(np.maximum(means, 1e-9))
+    assert abs(z.mean()) < 4 / math.sqrt(len(z)) and z.var() == pytest.approx(1.0, rel=0.15)
+
+
 def test_same_seed_same_frames() -> None:
     views = biplane_views(**SMALL)
     pose = RobotPose(np.array([1.0, 2.0, 3.0]), np.array([0.2, 0.9, 0.1]))
