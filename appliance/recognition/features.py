@@ -135,7 +135,8 @@ def axis_sigma_rad(weights: np.ndarray, centroid: np.ndarray, axis: np.ndarray, 
     """Standard deviation of the principal axis' angle caused by pixel noise ``pixel_sigma``.
 
     The axis turns by ``mu_st / (l1 - l2)`` for a mixed moment ``mu_st`` in the principal frame, which
-    noise of independent pixels makes ``pixel_sigma sqrt(sum s^2 t^2) / W``.
+    noise of independent pixels makes ``sqrt(sum sigma_i^2 s^2 t^2) / W``. A linear estimate: when it
+    comes out large (a nearly round blob: the robot seen end-on) the axis is simply unknown.
     """
     ys, xs = np.nonzero(weights)
     dx, dy = xs - centroid[0], ys - centroid[1]
@@ -144,7 +145,10 @@ def axis_sigma_rad(weights: np.ndarray, centroid: np.ndarray, axis: np.ndarray, 
     total = float(weights.sum(dtype=np.float64))
     if total <= 0 or spread <= 0:
         return float("inf")
-    return float(pixel_sigma * np.sqrt(np.sum((s * t) ** 2)) / (total * spread))
+    # Quantum noise of -log(I) grows as exp(A / 2) behind the body (fewer photons), so a dense robot's
+    # own pixels are much noisier than the background ``pixel_sigma`` was measured on.
+    gain = np.exp(np.clip(weights[ys, xs], 0.0, 12.0))
+    return float(pixel_sigma * np.sqrt(np.sum((s * t) ** 2 * gain)) / (total * spread))
 
 
 def _reach(profile: np.ndarray, s0: float, level: float, direction: int) -> float:

@@ -83,34 +83,42 @@ def ray_line_parameters(view: View, pixels: np.ndarray, point: np.ndarray, direc
 
 
 def fuse_axis(calibration: Calibration, centroid: np.ndarray, feats: dict[str, Features2D], d_tips: np.ndarray,
-              settings: RecognitionSettings) -> np.ndarray:
+              settings: RecognitionSettings) -> tuple[np.ndarray, float]:
     """The 3D axis that best fits both views' axis planes and the triangulated tips, by their precision.
 
     Each view says ``n . d = 0`` for its plane's normal ``n``, to within its 2D axis' angular noise times
     the sine of the axis' angle to the view's ray (a plane turning about a ray the axis nearly lies on
     hardly moves the axis); the tips say ``d ~ d_tips`` to within the tip noise over the length. The
-    unit ``d`` minimising the weighted squared residuals is the smallest eigenvector of their sum.
+    unit ``d`` minimising the weighted squared residuals is the smallest eigenvector of their sum, and
+    the inverse square root of the next eigenvalue is its standard deviation (radians) in the worst
+    direction.
     Far from an epipolar plane the planes dominate (the tips' rim biases do not reach the axis); in it,
     only the tips can say where in the common plane the axis lies.
     """
-    length = 0.0
+    length = math.inf
     M = np.zeros((3, 3))
     for name, feat in feats.items():
         view = calibration.views[name]
         n = axis_plane(view, feat)[:3]
         ray = _unit(centroid - view.source_mm)
         sin_a = max(float(np.linalg.norm(np.cross(ray, d_tips))), 0.05)
-        sigma = math.hypot((feat.axis_sigma_rad if feat.axis_sigma_rad is not None else 0.01) * sin_a,
-                           settings.axis_floor_rad)
+        angle_sigma = feat.axis_sigma_rad if feat.axis_sigma_rad is not None else 0.01
+        if feat.eigenvalues[0] < settings.min_view_elongation * feat.eigenvalues[1]:
+            # A nearly round image (robot seen end-on): the end face's ellipse lies across the short
+            # projected axis, so the principal axis says nothing reliable, whatever the noise.
+            angle_sigma = 1.0
+        sigma = math.hypot(angle_sigma * sin_a, settings.axis_floor_rad)
         M += np.outer(n, n) / sigma ** 2
-        length = max(length, float(np.linalg.norm(feat.tips[0] - feat.tips[1])))
+        # The tips' direction is only as good as the shortest image of the robot.
+        length = min(length, float(np.linalg.norm(feat.tips[0] - feat.tips[1])))
     mm_per_px = float(np.linalg.norm(centroid - calibration.p.source_mm)) / float(calibration.p.K[0, 0])
     sigma_tips = settings.tip_sigma_px * math.sqrt(2.0) / max(length, 1.0)
     M += (np.eye(3) - np.outer(d_tips, d_tips)) / sigma_tips ** 2
     del mm_per_px  # the tip noise is compared with the image length, so the scale cancels
-    _, vectors = np.linalg.eigh(M)
+    values, vectors = np.linalg.eigh(M)
     d = vectors[:, 0]
-    return d if float(np.dot(d, d_tips)) >= 0 else -d
+    sigma = 1.0 / math.sqrt(max(float(values[1] - values[0]), 1e-12))
+    return (d if float(np.dot(d, d_tips)) >= 0 else -d), sigma
 
 
 def _hypotheses(calibration: Calibration, feat_p: Features2D, feat_q: Features2D, optimal: bool
@@ -186,7 +194,13 @@ def reconstruct(calibration: Calibration, F: np.ndarray, feat_p: Features2D, fea
     assert case is not None
     d = hyps[case][0] - hyps[case][1]
     if not paper and np.all(np.isfinite(d)) and np.linalg.norm(d) > 1e-9:
-        d = fuse_axis(calibration, centroid, {"p": feat_p, "q": feat_q}, _unit(d), settings)
+        d, sigma = fuse_axis(calibration, centroid, {"p": feat_p, "q": feat_q}, _unit(d), settings)
+        if math.degrees(sigma) > settings.max_axis_sigma_deg and not ambiguous:
+            ambiguous = True
+            views = [name for name, f in (("p", feat_p), ("q", feat_q))
+                     if f.axis_sigma_rad is None or math.degrees(f.axis_sigma_rad) > settings.max_axis_sigma_deg]
+            where = f" (the robot is seen nearly end-on in view {' and '.join(views)})" if views else ""
+            reasons.append(f"the axis is uncertain by about {math.degrees(sigma):.1f} deg{where}")
     if not np.all(np.isfinite(d)) or np.linalg.norm(d) < 1e-9:
         raise ValueError("triangulated tips coincide or lie behind a source")
     d = _unit(d)
