@@ -257,6 +257,17 @@ def perturbed_calibration(true_views: dict[str, Any], rotation_deg: float, trans
         "perturbation": {"rotation_deg": rotation_deg, "translation_mm": translation_mm, "seed": seed}})
 
 
+def turned_views(views: dict[str, Any], azimuth_deg: float) -> dict[str, Any]:
+    """The biplane system turned about the world's vertical axis by ``azimuth_deg`` (sources and detectors
+    move together around the isocentre: ``R' = R Rz^T``, ``t`` unchanged)."""
+    if azimuth_deg == 0.0:
+        return views
+    from drivers.loopback.xray_render import TrueView
+
+    turn = Rotation.from_euler("z", azimuth_deg, degrees=True).as_matrix()
+    return {name: TrueView(name, v.K, v.dist, v.R @ turn.T, v.t, v.image_size) for name, v in views.items()}
+
+
 # -- amplifier ----------------------------------------------------------------------------------------
 def amplifier_limits(device: AmplifierDevice, coils: Any) -> AmplifierLimits:
     """Per-channel limits set on the amplifier: the coils' limits, lowered by the device section's."""
@@ -398,9 +409,9 @@ def _open_simulation(session: Session, robot: RobotSpec, coils: Any, stack: cont
     except (KeyError, TypeError, ValueError) as err:
         raise ConfigError(f"{session.vessel_path}: cannot build the simulated world: {err}") from err
 
-    true_views = biplane_views(sod_mm=imaging.sod_mm, sdd_mm=imaging.sdd_mm, fov_mm=imaging.fov_mm,
-                               image_size=imaging.image_size, separation_deg=imaging.separation_deg,
-                               elevation_deg=imaging.elevation_deg)
+    true_views = turned_views(biplane_views(sod_mm=imaging.sod_mm, sdd_mm=imaging.sdd_mm, fov_mm=imaging.fov_mm,
+                                            image_size=imaging.image_size, separation_deg=imaging.separation_deg,
+                                            elevation_deg=imaging.elevation_deg), imaging.azimuth_deg)
     if config.calibration.source == "nominal":
         p = config.calibration.perturbation
         calibration = perturbed_calibration(true_views, p.rotation_deg, p.translation_mm, p.seed)

@@ -104,6 +104,7 @@ class FrameReport:
     latency_write_s: float | None = None  # later frame of the pair on the host -> command written
     latency_ack_s: float | None = None    # ... -> command acknowledged with the measured currents
     stopped: bool = False
+    images: tuple[np.ndarray, np.ndarray] | None = None   # the pair's (p, q) images, for the recorder
 
     def command_record(self) -> dict[str, Any]:
         return {"frame": self.frame, "mode": self.mode, "reason": self.reason, "tracked": self.tracked,
@@ -162,6 +163,7 @@ class Orchestrator:
         self._amp_events: list[AmplifierEvent] = []
         self._events_lock = threading.Lock()
         self._shut = False
+        self._safety_seen = 0
 
     # -- lifecycle ----------------------------------------------------------------------------------
     def __enter__(self) -> Orchestrator:
@@ -288,6 +290,10 @@ class Orchestrator:
         decision = self.safety.update(now, tracked, command.field_T if command else None,
                                       command.force_N if command else None, speed)
         stages["control"] = (time.perf_counter() - mark) * 1e6
+        for event in self.safety.events[self._safety_seen:]:
+            self._notify("on_fault", event.t_s, {"device": "safety", "reason": event.reason, "mode": event.mode.value,
+                                                 "previous": event.previous.value, "step": self.stats.steps})
+        self._safety_seen = len(self.safety.events)
         if decision.mode is Mode.STOP:
             return self._latch("safety", decision.reason or "safety stop", stages=stages)
 
@@ -330,7 +336,7 @@ class Orchestrator:
             field_T=np.asarray(decision.field_T, float), force_N=np.asarray(decision.force_N, float),
             commanded_a=result.commanded_a, measured_a=result.measured_a, scale=allocation.scale,
             limited_by=allocation.limited_by, stages_us=stages, latency_write_s=latency_write,
-            latency_ack_s=latency_ack)
+            latency_ack_s=latency_ack, images=(pair.p.image, pair.q.image) if pair is not None else None)
         self._side_channels(now)
         stages["total"] = (time.perf_counter() - began) * 1e6
         self.stats.step_s.append(stages["total"] / 1e6)
@@ -369,6 +375,7 @@ class Orchestrator:
         """Latched stop: output off at once (unless the link is gone), the reason recorded, the loop ended."""
         now = self.clock()
         decision = self.safety.fault(reason, now)
+        self._safety_seen = len(self.safety.events)
         if not link_lost:
             try:
                 self.amplifier.disable()
@@ -423,3 +430,36 @@ class Orchestrator:
                 self.stop_reason = f"listener {type(listener).__name__} failed in {method}: {err}"
                 log.error("loop: %s", self.stop_reason)
                 raise ListenerError(self.stop_reason) from err
+
+
+class RecordingListener(LoopListener):
+    """Writes the loop into a :class:`appliance.recording.Recorder` (pinned API). The frame's timing is
+    written last: it is the recorder's frame boundary, where the file is flushed to disk."""
+
+    def __init__(self, recorder: Any) -> None:
+        self.recorder = recorder
+
+    def on_frame(self, report: FrameReport) -> None:
+        rec = self.recorder
+        if report.posture is not None:
+            rec.write_posture(report.t_s, report.posture)
+        rec.write_command(report.t_s, report.command_record())
+        if report.measured_a is not None:
+            rec.write_currents(report.t_s, report.measured_a.tolist(), report.commanded_a.tolist())
+        if report.images is not None and report.frame is not None:
+            rec.write_frames(report.t_s, report.frame, report.images[0], report.images[1])
+        rec.write_timing(report.t_s, report.frame, report.stages_us)
+
+    def on_ots(self, t_s: float, samples: list[dict[str, Any]]) -> None:
+        for sample in samples:
+            self.recorder.write_ots(t_s, sample)
+
+    def on_status(self, t_s: float, device: str, status: dict[str, Any]) -> None:
+        self.recorder.write_status(t_s, device, status)
+
+    def on_fault(self, t_s: float, fault: dict[str, Any]) -> None:
+        self.recorder.write_fault(t_s, fault)
+
+    def on_stop(self, t_s: float, summary: dict[str, Any]) -> None:
+        self.recorder.write_status(t_s, "loop", summary)
+        self.recorder.flush()

@@ -65,6 +65,8 @@ class ImagingSection(StrictModel):
     sdd_mm: float = Field(default=1000.0, gt=0.0)
     fov_mm: tuple[float, float] = (150.0, 130.0)
     separation_deg: float = Field(default=90.0, gt=0.0, lt=180.0)
+    #: Both C-arms turned together about the vertical axis (0: plane p's source on the world's -x axis).
+    azimuth_deg: float = Field(default=0.0, ge=-180.0, le=180.0)
     elevation_deg: float = Field(default=0.0, ge=-60.0, le=60.0)
     photons_per_pixel: float = Field(default=2000.0, gt=0.0)
     vessel_attenuation_per_mm: float = Field(default=0.06, ge=0.0)
