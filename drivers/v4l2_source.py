@@ -67,7 +67,7 @@ def device_path(device: str | int) -> str:
 
 
 def open_v4l2_capture(device: str | int, *, width: int | None = None, height: int | None = None,
-                      fps: float | None = None, bits: int = 16, read_timeout_ms: int = 1000) -> Any:
+                      fps: float | None = None, bits: int = 16, read_timeout_ms: int = 100) -> Any:
     """A ready ``cv2.VideoCapture`` on the V4L2 node, or a DeviceError saying why not."""
     import cv2
 
@@ -96,6 +96,7 @@ def open_v4l2_capture(device: str | int, *, width: int | None = None, height: in
         capture.set(cv2.CAP_PROP_FRAME_HEIGHT, height)
     if fps:
         capture.set(cv2.CAP_PROP_FPS, fps)
+    # Short backend timeouts keep read() close to its own deadline (it retries until then).
     capture.set(cv2.CAP_PROP_READ_TIMEOUT_MSEC, read_timeout_ms)
     return capture
 
