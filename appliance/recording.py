@@ -8,11 +8,15 @@ directly; the topics and their JSON Schemas are in :mod:`appliance.recording_sch
 Durability. Messages collect in the current MCAP chunk; at a *frame boundary* the chunk is closed,
 written, flushed to the operating system and (``fsync=True``, the default) forced to the disk. A
 frame boundary is :meth:`Recorder.write_timing` (the loop writes a frame's timing last, once the
-frame's work is done), :meth:`Recorder.write_frames`, :meth:`Recorder.write_fault` (a fault must be
-on disk before anything else can go wrong) and :meth:`Recorder.flush`; a chunk that spans more than
-``max_unflushed_s`` of loop time is closed too, so side channels are kept while the imaging chain is
-silent. A crash therefore loses at most the frame being written. The summary and indexes that make
-seeking fast are appended by :meth:`Recorder.close`; a file cut off before that still reads.
+frame's work is done), :meth:`Recorder.write_frames` and :meth:`Recorder.flush`; a chunk that spans
+more than ``max_unflushed_s`` of loop time is closed too, so side channels are kept while the imaging
+chain is silent. :meth:`Recorder.write_fault` returns only once the fault and everything before it
+are on disk. The writing itself runs on a background thread (``threaded=True``, the default) so the
+loop does not wait for base64, compression or ``fsync``; when ``write_timing`` of frame n returns,
+frame n-1 is on disk (``max_lag_frames=1``). So a crash or power loss loses at most the last frame
+and the one being written (``threaded=False``: only the one being written, at the loop's expense).
+The summary and indexes that make seeking fast are appended by :meth:`Recorder.close`; a file cut
+off before that still reads.
 
 Times. ``t_s`` is the loop's clock (monotonic, seconds, any origin). MCAP log times are nanoseconds
 of the wall clock: the first ``t_s`` written (or ``t0_s``) is mapped to the wall-clock time at which
@@ -25,7 +29,6 @@ mid-chunk, in the summary) yields every complete message before the cut and reco
 """
 from __future__ import annotations
 
-import base64
 import datetime as _dt
 import json
 import logging
@@ -38,17 +41,15 @@ from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
-from mcap.writer import CompressionType, Writer
 
 from appliance import recording_schemas as rs
 from appliance.errors import ApplianceError
 from appliance.recording_reader import RecordingReader, RecordingSummary
+from appliance.recording_sink import COMPRESSIONS, BackgroundWriter, McapSink
 
 log = logging.getLogger(__name__)
 
 __all__ = ["Recorder", "RecordingError", "RecordingReader", "RecordingSummary", "jsonable"]
-
-_COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 
 
 class RecordingError(ApplianceError, OSError):
@@ -81,8 +82,8 @@ def jsonable(value: Any, where: str = "") -> Any:
 def _check_options(frames_every: int, compression: str) -> None:
     if frames_every < 1:
         raise ValueError(f"frames_every must be >= 1, got {frames_every}")
-    if compression not in _COMPRESSIONS:
-        raise ValueError(f"compression must be one of {sorted(_COMPRESSIONS)}, got {compression!r}")
+    if compression not in COMPRESSIONS:
+        raise ValueError(f"compression must be one of {sorted(COMPRESSIONS)}, got {compression!r}")
 
 
 def _encode(value: Mapping[str, Any], what: str) -> bytes:
@@ -91,44 +92,50 @@ def _encode(value: Mapping[str, Any], what: str) -> bytes:
 
 class Recorder:
     """Writes one session's MCAP recording; see the module docstring. Context manager; ``close`` is
-    idempotent. Thread-safe (one lock), though the loop normally writes from its owner thread only."""
+    idempotent. Thread-safe (one lock), though the loop normally writes from its owner thread only.
+
+    ``threaded`` (default): a background thread encodes, compresses and writes, so a frame costs the
+    loop only the JSON encoding of its records and a copy of its images; a frame boundary waits only
+    while more than ``max_lag_frames`` earlier frames are still unwritten. An image pair offered
+    while ``max_pending_images`` pairs still wait to be written is dropped (counted in
+    ``images_dropped`` and reported on ``/status`` as device ``recorder``): the disk must not stall
+    the coils' control. Structured messages are never dropped.
+    ``threaded=False`` writes in the caller's thread (a frame boundary returns once it is on disk)."""
 
     def __init__(self, stream: IO[bytes], *, path: Path, config: Mapping[str, Any],
                  calibration: Mapping[str, Any], frames_every: int = 1, compression: str = "zstd",
-                 fsync: bool = True, t0_s: float | None = None, max_unflushed_s: float = 0.1) -> None:
+                 fsync: bool = True, t0_s: float | None = None, max_unflushed_s: float = 0.1,
+                 threaded: bool = True, max_lag_frames: int = 1, max_pending_images: int = 2) -> None:
         _check_options(frames_every, compression)
         self.path = path
         self.frames_every = int(frames_every)
-        self._stream = stream
-        self._fsync = fsync
         self._max_unflushed_s = max_unflushed_s
+        self._max_pending_images = max_pending_images
         self._lock = threading.Lock()
         self._closed = False
         self._frames_offered = 0
         self.frames_written = 0
+        self.images_dropped = 0
         self.messages_written = 0
         self._unflushed_since: float | None = None
         self._origin_ns = time.time_ns()
         self._t0_s = t0_s
-        self._writer = Writer(stream, compression=_COMPRESSIONS[compression])
-        self._channels: dict[str, int] = {}
         try:
-            self._writer.start(profile=rs.PROFILE, library=f"appliance recording v{rs.FORMAT_VERSION}")
-            for topic, (name, schema) in rs.SCHEMAS.items():
-                self._register(topic, name, schema)
-            for topic in rs.TOPIC_IMAGE.values():
-                self._register(topic, rs.IMAGE_SCHEMA_NAME, rs.RAW_IMAGE_SCHEMA)
-            self._write_session()
-            self._add(rs.TOPIC_CONFIG, self._origin_ns, _encode(config, "config"))
-            self._add(rs.TOPIC_CALIBRATION, self._origin_ns, _encode(calibration, "calibration"))
-            self._flush()
+            self._sink = McapSink(stream, path, compression=compression, fsync=fsync)
+            # The session description, config and calibration are on disk before the loop starts.
+            self._sink.add(rs.TOPIC_SESSION, self._origin_ns, self._session_message())
+            self._sink.add(rs.TOPIC_CONFIG, self._origin_ns, _encode(config, "config"))
+            self._sink.add(rs.TOPIC_CALIBRATION, self._origin_ns, _encode(calibration, "calibration"))
+            self._sink.flush()
         except OSError as err:
             raise RecordingError(f"{path}: cannot write the recording ({err.strerror or err})") from err
+        self._background = BackgroundWriter(self._sink, max_lag_frames=max_lag_frames) if threaded else None
 
     @classmethod
     def create(cls, path: Path, *, config: Mapping[str, Any], calibration: Mapping[str, Any],
                frames_every: int = 1, compression: str = "zstd", fsync: bool = True,
-               t0_s: float | None = None) -> Recorder:
+               t0_s: float | None = None, threaded: bool = True, max_lag_frames: int = 1,
+               max_pending_images: int = 2) -> Recorder:
         """Create a new recording at ``path`` (its folder is made; an existing file is never overwritten)."""
         path = Path(path)
         _check_options(frames_every, compression)
@@ -141,7 +148,8 @@ class Recorder:
             raise RecordingError(f"{path}: cannot create the recording ({err.strerror or err})") from err
         try:
             return cls(stream, path=path, config=config, calibration=calibration, frames_every=frames_every,
-                       compression=compression, fsync=fsync, t0_s=t0_s)
+                       compression=compression, fsync=fsync, t0_s=t0_s, threaded=threaded,
+                       max_lag_frames=max_lag_frames, max_pending_images=max_pending_images)
         except BaseException:
             stream.close()
             raise
@@ -164,8 +172,9 @@ class Recorder:
         self._write(rs.TOPIC_OTS, t_s, sample)
 
     def write_fault(self, t_s: float, fault: Mapping[str, Any]) -> None:
-        """A fault or safety event; forced to disk at once."""
-        self._write(rs.TOPIC_FAULT, t_s, fault, boundary=True)
+        """A fault or safety event; returns once it (and everything before it) is on disk."""
+        self._write(rs.TOPIC_FAULT, t_s, fault)
+        self.flush()
 
     def write_status(self, t_s: float, device: str, status: Mapping[str, Any]) -> None:
         """A device's status; the message carries ``device`` beside the status keys."""
@@ -191,19 +200,30 @@ class Recorder:
             if not keep:
                 return False
             log_time = self._log_time(t_s)
-            for name, image in (("p", image_p), ("q", image_q)):
-                self._add(rs.TOPIC_IMAGE[name], log_time, self._image_message(name, log_time, image),
-                          sequence=frame_number)
+            if self._background is not None and self._background.images_pending >= self._max_pending_images:
+                # The disk is slower than the loop: losing a picture beats stalling the coils' control.
+                self.images_dropped += 1
+                if self.images_dropped == 1 or self.images_dropped % 100 == 0:
+                    log.warning("%s: writer behind, image pair of frame %d dropped (%d so far)", self.path,
+                                frame_number, self.images_dropped)
+                status = {"device": "recorder", "images_dropped": self.images_dropped, "frame": frame_number}
+                self._submit(("msg", rs.TOPIC_STATUS, log_time, _encode(status, "status"), 0))
+                return False
+            if self._background is not None:
+                # The caller may reuse its buffers once we return; the writer thread needs its own copy.
+                image_p, image_q = image_p.copy(), image_q.copy()
+            self._submit(("images", log_time, int(frame_number) % (1 << 32), image_p, image_q))
             self.frames_written += 1
-            self._flush()
+            self._unflushed_since = None
             return True
 
     # -- lifecycle ----------------------------------------------------------------------------------
     def flush(self) -> None:
-        """Close the current chunk and force it to disk now."""
+        """Close the current chunk and force everything written so far to disk; returns once it is there."""
         with self._lock:
             self._check_open()
-            self._flush()
+            self._unflushed_since = None
+            self._guarded(self._background.sync if self._background is not None else self._sink.flush)
 
     def close(self) -> None:
         """Write the summary (indexes, statistics) and close the file; idempotent."""
@@ -211,17 +231,12 @@ class Recorder:
             if self._closed:
                 return
             self._closed = True
-            try:
-                self._writer.finish()
-                self._stream.flush()
-                if self._fsync:
-                    os.fsync(self._stream.fileno())
-            except OSError as err:
-                raise RecordingError(f"{self.path}: cannot finish the recording ({err.strerror or err})") from err
-            finally:
-                self._stream.close()
-        log.info("recording %s closed: %d messages, %d frame pairs", self.path, self.messages_written,
-                 self.frames_written)
+            if self._background is not None:
+                self._guarded(self._background.close)
+            else:
+                self._guarded(self._sink.finish)
+        log.info("recording %s closed: %d messages, %d frame pairs (%d dropped)", self.path,
+                 self.messages_written, self.frames_written, self.images_dropped)
 
     @property
     def closed(self) -> bool:
@@ -234,16 +249,11 @@ class Recorder:
         self.close()
 
     # -- internals ----------------------------------------------------------------------------------
-    def _register(self, topic: str, name: str, schema: dict[str, Any]) -> None:
-        schema_id = self._writer.register_schema(name=name, encoding="jsonschema", data=rs.schema_bytes(schema))
-        self._channels[topic] = self._writer.register_channel(topic=topic, message_encoding="json",
-                                                              schema_id=schema_id)
-
-    def _write_session(self) -> None:
+    def _session_message(self) -> bytes:
         session = {"format_version": rs.FORMAT_VERSION, "origin_unix_ns": self._origin_ns, "t0_s": self._t0_s,
                    "frames_every": self.frames_every,
                    "created_utc": _dt.datetime.fromtimestamp(self._origin_ns / 1e9, _dt.timezone.utc).isoformat()}
-        self._add(rs.TOPIC_SESSION, self._origin_ns, _encode(session, "session"))
+        return _encode(session, "session")
 
     def _log_time(self, t_s: float) -> int:
         if not math.isfinite(t_s):
@@ -252,46 +262,39 @@ class Recorder:
             # The loop's clock has an arbitrary origin: pin its first reading to the creation time,
             # and say so in a second /session message so the reader can give back t_s.
             self._t0_s = float(t_s)
-            self._write_session()
+            self._submit(("msg", rs.TOPIC_SESSION, self._origin_ns, self._session_message(), 0))
         return self._origin_ns + round((t_s - self._t0_s) * 1e9)
 
     def _write(self, topic: str, t_s: float, payload: Mapping[str, Any], *, sequence: Any = None,
                boundary: bool = False) -> None:
         data = _encode(payload, topic.strip("/"))
+        seq = int(sequence) % (1 << 32) if isinstance(sequence, (int, np.integer)) else 0
         with self._lock:
             self._check_open()
-            self._add(topic, self._log_time(t_s), data, sequence=sequence)
+            op = ("msg", topic, self._log_time(t_s), data, seq)
             if self._unflushed_since is None:
                 self._unflushed_since = t_s
-            if boundary or t_s - self._unflushed_since > self._max_unflushed_s:
-                self._flush()
+            # Side channels keep coming while the imaging chain is silent: close their chunk too.
+            boundary = boundary or t_s - self._unflushed_since > self._max_unflushed_s
+            self._submit(op, boundary=boundary)
+            if boundary:
+                self._unflushed_since = None
 
-    def _add(self, topic: str, log_time: int, data: bytes, sequence: Any = None) -> None:
-        seq = int(sequence) % (1 << 32) if isinstance(sequence, (int, np.integer)) else 0
-        try:
-            self._writer.add_message(channel_id=self._channels[topic], log_time=log_time, data=data,
-                                     publish_time=log_time, sequence=seq)
-        except OSError as err:
-            raise RecordingError(f"{self.path}: cannot write {topic} ({err.strerror or err})") from err
-        self.messages_written += 1
+    def _submit(self, op: tuple[Any, ...], *, boundary: bool = False) -> None:
+        if op[0] == "msg":
+            self.messages_written += 1
+        if self._background is not None:
+            self._guarded(self._background.submit, op, boundary=boundary)
+            return
+        self._guarded(self._sink.apply, op)
+        if boundary:
+            self._guarded(self._sink.flush)
 
-    def _flush(self) -> None:
+    def _guarded(self, call: Any, *args: Any, **kwargs: Any) -> None:
         try:
-            self._writer.flush()
-            if self._fsync:
-                os.fsync(self._stream.fileno())
+            call(*args, **kwargs)
         except OSError as err:
             raise RecordingError(f"{self.path}: cannot write the recording ({err.strerror or err})") from err
-        self._unflushed_since = None
-
-    def _image_message(self, plane: str, log_time: int, image: np.ndarray) -> bytes:
-        pixels = np.ascontiguousarray(image, dtype="<u2")
-        height, width = pixels.shape
-        message = {"timestamp": {"sec": log_time // 1_000_000_000, "nsec": log_time % 1_000_000_000},
-                   "frame_id": f"xray_{plane}", "width": width, "height": height,
-                   "encoding": rs.IMAGE_ENCODING, "step": 2 * width,
-                   "data": base64.b64encode(pixels.tobytes()).decode("ascii")}
-        return json.dumps(message, separators=(",", ":")).encode("utf-8")
 
     def _check_open(self) -> None:
         if self._closed:

@@ -9,6 +9,7 @@ import random
 import subprocess
 import sys
 import textwrap
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -51,7 +52,8 @@ def _write_frame(rec: Recorder, frame: int) -> None:
 @pytest.fixture(scope="module")
 def closed_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
     path = tmp_path_factory.mktemp("rec") / "session.mcap"
-    with Recorder.create(path, config=CONFIG, calibration=CALIBRATION, frames_every=3, fsync=False) as rec:
+    with Recorder.create(path, config=CONFIG, calibration=CALIBRATION, frames_every=3, fsync=False,
+                         threaded=False) as rec:
         for frame in range(10):
             _write_frame(rec, frame)
         rec.write_status(T0 + 0.5, "amplifier", {"state": "enabled", "temperature_c": np.float32(31.5)})
@@ -129,13 +131,15 @@ def test_standard_mcap_reader_and_viewer_schemas(closed_recording: Path) -> None
 def _write_unclosed(path: Path, frames: int) -> list[tuple[int, int, int]]:
     """Write ``frames`` frames and leave the file open (as at a crash); returns (file size, messages so
     far, image pairs so far) after each frame, i.e. what a cut at or after that size must still deliver."""
-    rec = Recorder.create(path, config=CONFIG, calibration=CALIBRATION, frames_every=2, fsync=False)
+    stream = path.open("xb")
+    rec = Recorder(stream, path=path, config=CONFIG, calibration=CALIBRATION, frames_every=2, fsync=False,
+                   threaded=False)
     boundaries = [(path.stat().st_size, 0, 0)]
     for frame in range(frames):
         _write_frame(rec, frame)
         # posture, command, currents, ots, timing per frame; images of frames 0, 2, 4...
         boundaries.append((path.stat().st_size, 5 * (frame + 1), frame // 2 + 1))
-    rec._stream.close()  # the process died: no summary, no footer
+    stream.close()  # the process died: no summary, no footer
     return boundaries
 
 
@@ -210,30 +214,112 @@ def test_killed_writer_process(tmp_path: Path) -> None:
     done = subprocess.run([sys.executable, "-c", script], cwd=Path(__file__).parents[2], timeout=60)
     assert done.returncode == 3
     reader = RecordingReader(path)
-    assert [m["frame"] for _, _, m in reader.messages("/posture")] == [0, 1, 2, 3, 4]
-    assert [(n, int(p[0, 0])) for n, _, p, _ in reader.frames()] == [(n, n) for n in range(5)]
+    # Threaded writer, max_lag_frames=1: when frame 4's timing returned, frames 0-3 were on disk.
+    postures = [m["frame"] for _, _, m in reader.messages("/posture")]
+    assert postures == list(range(len(postures))) and len(postures) >= 4
+    pairs = [(n, int(p[0, 0])) for n, _, p, _ in reader.frames()]
+    assert pairs == [(n, n) for n in range(len(pairs))] and len(pairs) + reader.summary().messages["/status"] >= 4
 
 
-def test_every_frame_boundary_is_forced_to_disk(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.mark.parametrize("threaded", [False, True])
+def test_every_frame_boundary_is_forced_to_disk(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                threaded: bool) -> None:
     synced: list[int] = []
     real_fsync = os.fsync
     monkeypatch.setattr(os, "fsync", lambda fd: (synced.append(fd), real_fsync(fd))[1])
-    with Recorder.create(tmp_path / "s.mcap", config={}, calibration={"views": {}}) as rec:
+    with Recorder.create(tmp_path / "s.mcap", config={}, calibration={"views": {}}, threaded=threaded) as rec:
         at_start = len(synced)
         for frame in range(4):
             _write_frame(rec, frame)
-            assert len(synced) >= at_start + frame + 1
+            if not threaded:
+                assert len(synced) >= at_start + frame + 1
+        rec.write_fault(1.0, {"device": "amplifier", "reason": "test"})
+        assert len(synced) >= at_start + 5  # the fault returns once it is on disk, threaded or not
     assert at_start >= 1  # the config and calibration are on disk before the first frame
 
 
 def test_side_channels_are_flushed_while_imaging_is_silent(tmp_path: Path) -> None:
     path = tmp_path / "silent.mcap"
-    rec = Recorder.create(path, config={}, calibration={"views": {}}, fsync=False)
+    stream = path.open("xb")
+    rec = Recorder(stream, path=path, config={}, calibration={"views": {}}, fsync=False, threaded=False)
     for k in range(10):
         rec.write_ots(k * 0.05, {"handle": "01", "k": k})  # 0.45 s of OTS samples, no frame boundary
-    rec._stream.close()
+    stream.close()
     got = [m["k"] for _, _, m in RecordingReader(path).messages("/ots")]
     assert got[:4] == [0, 1, 2, 3] and len(got) >= 7  # at most max_unflushed_s (0.1 s) of them lost
+
+
+def test_threaded_writer_writes_what_the_direct_one_does(tmp_path: Path) -> None:
+    contents = []
+    for threaded in (False, True):
+        path = tmp_path / f"threaded_{threaded}.mcap"
+        with Recorder.create(path, config=CONFIG, calibration=CALIBRATION, fsync=False, threaded=threaded) as rec:
+            for frame in range(5):
+                _write_frame(rec, frame)
+                rec.flush()  # paced like a loop whose disk keeps up: nothing is dropped
+            assert rec.images_dropped == 0
+        reader = RecordingReader(path)
+        contents.append(([(n, m) for n, _, m in reader.messages()],
+                         [(n, p.tobytes(), q.tobytes()) for n, _, p, q in reader.frames()]))
+    assert contents[0] == contents[1] and len(contents[0][1]) == 5
+
+
+class _StalledDisk:
+    """A file whose writes block until released: the disk is slower than the loop."""
+
+    def __init__(self, path: Path) -> None:
+        self._file = path.open("xb")
+        self.release = threading.Event()
+        self.release.set()
+
+    def write(self, data: bytes) -> int:
+        self.release.wait(timeout=30)
+        return self._file.write(data)
+
+    def flush(self) -> None:
+        self._file.flush()
+
+    def tell(self) -> int:
+        return self._file.tell()
+
+    def fileno(self) -> int:
+        return self._file.fileno()
+
+    def close(self) -> None:
+        self._file.close()
+
+
+def test_images_are_dropped_not_the_loop_stalled_when_the_disk_is_slow(tmp_path: Path) -> None:
+    path = tmp_path / "slow.mcap"
+    disk = _StalledDisk(path)
+    rec = Recorder(disk, path=path, config={}, calibration={"views": {}}, fsync=False, max_pending_images=2)
+    disk.release.clear()
+    kept = [rec.write_frames(k / 30.0, k, *_images(k)) for k in range(5)]  # returns although nothing is written
+    rec.write_posture(0.2, {"frame": 4, "ok": True})
+    assert kept == [True, True, False, False, False] and rec.images_dropped == 3
+    disk.release.set()
+    rec.close()
+    reader = RecordingReader(path)
+    assert [n for n, *_ in reader.frames()] == [0, 1]
+    assert [m["images_dropped"] for _, _, m in reader.messages("/status")] == [1, 2, 3]
+    assert [m["frame"] for _, _, m in reader.messages("/posture")] == [4]
+
+
+def test_a_write_error_on_the_writer_thread_reaches_the_caller(tmp_path: Path) -> None:
+    path = tmp_path / "full.mcap"
+    disk = _StalledDisk(path)
+    rec = Recorder(disk, path=path, config={}, calibration={"views": {}}, fsync=False)
+
+    def disk_full(data: bytes) -> int:
+        raise OSError(28, "No space left on device")
+
+    disk.write = disk_full  # type: ignore[method-assign]
+    rec.write_posture(0.0, {"frame": 0})
+    with pytest.raises(RecordingError, match="full.mcap: cannot write the recording \\(No space left on device\\)"):
+        for frame in range(3):
+            rec.write_timing(frame / 30.0, frame, {"total": 1.0})
+    with pytest.raises(RecordingError, match="No space left"):
+        rec.close()
 
 
 def test_errors(tmp_path: Path) -> None:

@@ -45,7 +45,7 @@ def session() -> tuple[Calibration, list[tuple[int, float, np.ndarray, np.ndarra
 def _record(path: Path, calibration: Calibration, frames: list, *, frames_every: int = 1,
             tamper: dict[int, dict[str, Any]] | None = None, images: bool = True) -> Path:
     with Recorder.create(path, config={"name": "replay test"}, calibration=calibration.to_dict(),
-                         frames_every=frames_every, fsync=False) as rec:
+                         frames_every=frames_every, fsync=False, threaded=False) as rec:
         for frame, t, image_p, image_q, posture in frames:
             posture = copy.deepcopy(posture)
             posture.update((tamper or {}).get(frame, {}))
