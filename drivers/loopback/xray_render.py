@@ -242,7 +242,8 @@ class BiplaneRenderer:
     """Renders biplane exposures of a robot (optionally in a vessel phantom, with beads).
 
     ``body`` None renders phantoms only. ``seed`` fixes the noise sequence: the same seed and the
-    same sequence of ``render`` calls give identical images.
+    same sequence of ``render`` calls give identical images. Not thread-safe (one noise generator):
+    render from one thread, or give each thread its own renderer.
     """
 
     def __init__(self, views: dict[str, TrueView], body: RobotBody | None, *,
@@ -308,7 +309,11 @@ class BiplaneRenderer:
         for vessel in self.vessels:
             mu, radius = vessel.attenuation_per_mm, vessel.radius_mm
             for start, end, n_start, n_end in vessel.segments():
-                bbox, _ = state.bbox_of(_box_corners(np.vstack([start, end]), radius * 1.5))
+                # A mitre plane tilted by half the bend reaches radius / cos(half bend) from the
+                # joint's centre.
+                axis = (end - start) / np.linalg.norm(end - start)
+                reach = radius / max(min(float(n_start @ axis), float(n_end @ axis)), 0.1)
+                bbox, _ = state.bbox_of(_box_corners(np.vstack([start, end]), reach))
                 if bbox is None:
                     continue
                 objects.append((bbox, _segment_tracer(state, start, end, n_start, n_end, radius), mu))
@@ -481,6 +486,6 @@ def _segment_tracer(state: _ViewState, start: np.ndarray, end: np.ndarray, n_sta
                     n_end: np.ndarray, radius: float) -> _Tracer:
     def tracer(x: np.ndarray, y: np.ndarray) -> np.ndarray:
         return tube_segment_chords(start, end, n_start, n_end, radius, state.source,
-                                        state.world_dirs(x, y))
+                                   state.world_dirs(x, y))
     return tracer
 

@@ -196,6 +196,13 @@ class RobotBody:
         object.__setattr__(self, "volume_mm3", v_cyl + v_cone)
         object.__setattr__(self, "centroid_from_tail_mm", z_c)
 
+    @classmethod
+    def from_spec(cls, spec: object) -> "RobotBody":
+        """From anything with ``length_mm``, ``diameter_mm``, ``tip_angle_deg`` and
+        ``attenuation_per_mm`` (such as a catalogue entry of ``config/robots.yaml``)."""
+        return cls(**{name: float(getattr(spec, name)) for name in
+                      ("length_mm", "diameter_mm", "tip_angle_deg", "attenuation_per_mm")})
+
     @property
     def radius_mm(self) -> float:
         return self.diameter_mm / 2.0

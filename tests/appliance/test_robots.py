@@ -56,8 +56,8 @@ def test_cone_follows_tip_angle_and_is_capped(robots) -> None:
 def test_geometry_agrees_with_the_simulator(robots) -> None:
     assert MAX_CONE_FRACTION == xray_scene.MAX_CONE_FRACTION
     for spec in robots.values():
-        body = xray_scene.RobotBody(spec.length_mm, spec.diameter_mm, spec.tip_angle_deg,
-                                    spec.attenuation_per_mm)
+        body = xray_scene.RobotBody.from_spec(spec)
+        assert body.attenuation_per_mm == spec.attenuation_per_mm
         assert body.cone_length_mm == pytest.approx(spec.cone_length_mm)
         assert body.volume_mm3 == pytest.approx(spec.volume_mm3)
         assert body.centroid_from_tail_mm == pytest.approx(spec.centroid_from_tail_mm)

@@ -248,6 +248,27 @@ def test_measured_path_length_at_the_cylinder_middle_is_the_diameter() -> None:
         assert mu_l / ROBOT_1.attenuation_per_mm == pytest.approx(ROBOT_1.diameter_mm, rel=2e-3)
 
 
+def test_rendered_vessel_attenuation_matches_its_volume() -> None:
+    """The whole bent tube is traced (no segment's box cut short at a mitred joint)."""
+    views = biplane_views(**SMALL)
+    t = np.linspace(0, math.pi, 13)        # 15 degree bends
+    centreline = np.stack([20 * np.cos(t), 12 * np.sin(t) - 6, 4 * np.sin(2 * t)], axis=1)
+    vessel = VesselPhantom(centreline, radius_mm=1.5, attenuation_per_mm=0.05)
+    exact = ImagingSettings.exact()
+    renderer = BiplaneRenderer(views, None, vessel=vessel, settings=exact)
+    flat = BiplaneRenderer(views, None, settings=exact)
+    mids = 0.5 * (centreline[1:] + centreline[:-1])
+    lengths = np.linalg.norm(np.diff(centreline, axis=0), axis=1)
+    for name, view in views.items():
+        cam = view.to_camera(mids)
+        # Per segment: fx fy * mu * volume * sqrt(1 + x^2 + y^2) / Z^2 at its middle.
+        oblique = np.sqrt(1 + (cam[:, 0] / cam[:, 2]) ** 2 + (cam[:, 1] / cam[:, 2]) ** 2)
+        expected = (view.K[0, 0] * view.K[1, 1] * 0.05 * math.pi * 1.5 ** 2
+                    * np.sum(lengths * oblique / cam[:, 2] ** 2))
+        measured = -np.log(renderer.expected_photons(name) / flat.expected_photons(name)).sum()
+        assert measured == pytest.approx(expected, rel=0.01)
+
+
 def test_robot_in_a_vessel_displaces_the_contrast() -> None:
     views = biplane_views(**SMALL)
     vessel = VesselPhantom(np.array([[0.0, 0.0, -30.0], [0.0, 0.0, 30.0]]), 3.0, 0.05)
