@@ -44,7 +44,7 @@ class SafetySettings(StrictModel):
     hold_after_lost_frames: int = Field(default=3, ge=0)
     zero_after_lost_frames: int = Field(default=30, ge=1)
     resume_after_frames: int = Field(default=3, ge=1)
-    hold_field_t: float = Field(default=0.5e-3, ge=0.0)
+    hold_field_t: float = Field(default=0.25e-3, ge=0.0)
     max_robot_speed_mm_s: float = Field(default=20.0, gt=0.0)
 
     @model_validator(mode="after")

@@ -16,7 +16,7 @@ STRAIGHT = np.array([[0.0, 0.0, 0.0], [25.0, 0.0, 0.0], [50.0, 0.0, 0.0]])
 
 
 def test_on_path_it_aligns_and_pushes_along_the_tangent() -> None:
-    cfg = FollowerSettings()
+    cfg = FollowerSettings(field_ramp_s=0.0)
     follower = PathFollower(STRAIGHT, cfg)
     command = follower.command([10.0, 0.0, 0.0], [1.0, 0.0, 0.0], 0.0)
     assert np.allclose(command.field_T, [cfg.field_t, 0, 0])
@@ -24,6 +24,15 @@ def test_on_path_it_aligns_and_pushes_along_the_tangent() -> None:
     assert np.allclose(command.force_N[1:], 0.0)
     assert command.cross_track_mm == pytest.approx(0.0) and command.progress == pytest.approx(0.2)
     assert not command.done and np.allclose(command.moment_direction, [1, 0, 0])
+
+
+def test_field_ramps_up_after_start_and_reset() -> None:
+    cfg = FollowerSettings(field_ramp_s=1.0)
+    follower = PathFollower(STRAIGHT, cfg)
+    magnitudes = [np.linalg.norm(follower.command([10.0, 0, 0], [1, 0, 0], t).field_T) for t in (5.0, 5.5, 6.0, 7.0)]
+    assert np.allclose(magnitudes, np.array([0.1, 0.6, 1.0, 1.0]) * cfg.field_t)
+    follower.reset()
+    assert np.linalg.norm(follower.command([10.0, 0, 0], [1, 0, 0], 9.0).field_T) == pytest.approx(0.1 * cfg.field_t)
 
 
 def test_cross_track_error_is_pushed_back_with_lateral_drag() -> None:
@@ -62,7 +71,7 @@ def test_field_turns_at_most_the_rate_limit_at_a_corner() -> None:
     previous = None
     for i, x in enumerate(np.linspace(0.0, 20.0, 40)):
         command = follower.command(follower.point_at(x * 1.4), [1, 0, 0], (i + 1) / 30)
-        direction = command.field_T / cfg.field_t
+        direction = command.field_T / np.linalg.norm(command.field_T)
         if previous is not None:
             angle = math.degrees(math.acos(np.clip(np.dot(direction, previous), -1, 1)))
             assert angle <= 90.0 / 30 + 1e-6
