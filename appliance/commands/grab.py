@@ -9,7 +9,8 @@
 The folder (``DIR/p``, ``DIR/q``, 16-bit PNG or TIFF) is what ``appliance track DIR`` reads;
 ``DIR/timestamps.csv`` keeps every frame's device and host times and exposure so that file playback can
 replay the recorded timing. The summary gives the pair rate, each source's frames, drops, corrupt
-frames and timeouts, unpaired frames per plane and the p-q skew.
+frames and timeouts, unpaired frames per plane and the p-q skew. The folder contract is 16-bit, so
+8-bit sources (a video capture card, a video file) are written scaled by 256 (value << 8).
 
 Loopback sources (fakes, for trying the command without hardware) render one robot of the catalogue
 moving slowly through the field of the true simulated views: ``loopback://`` serves the frames directly;

@@ -120,6 +120,8 @@ class FakeGrabberDevice:
         self._lock = threading.RLock()
         self._scheduled: dict[int, Fault] = {}
         self.faults_injected: dict[int, Fault] = {}   # frame number -> fault actually applied
+        # Every control transfer as seen on the wire: (bmRequestType, bRequest, wValue, wIndex, data stage).
+        self.control_log: list[tuple[int, int, int, int, bytes]] = []
         self.strings = {1: "Microrobot Lab", 2: "X-ray frame grabber", 3: serial}
         self.device_descriptor = SimpleNamespace(
             bLength=18, bDescriptorType=1, bcdUSB=0x0200, bDeviceClass=0, bDeviceSubClass=0, bDeviceProtocol=0,
@@ -431,9 +433,11 @@ class FakeGrabberBackend(usb.backend.IBackend):
         else:
             raise _usb_error(errno.EPIPE, f"request {bmRequestType:#04x}/{bRequest:#04x} not supported")
         if not is_in:
+            dev.control_log.append((bmRequestType, bRequest, wValue, wIndex, bytes(data)))
             return len(data)
         reply = (reply or b"")[:len(data)]
         memoryview(data).cast("B")[:len(reply)] = reply
+        dev.control_log.append((bmRequestType, bRequest, wValue, wIndex, bytes(reply)))
         return len(reply)
 
     @staticmethod

@@ -81,6 +81,24 @@ def test_random_faults_over_many_frames() -> None:
     assert source.counters.dropped == last + 1 - len(got)
 
 
+def test_control_exchange_is_byte_exact() -> None:
+    backend, device, _ = fake(serial="XRG-P")
+    with open_source(f"{URL}?serial=XRG-P&rate=29.97&exposure_ms=5", backend=backend) as source:
+        source.read(2.0)
+    vendor = [entry for entry in device.control_log if entry[0] in (0x40, 0xC0)]
+    assert vendor == [
+        (0xC0, 0x01, 0, 0, bytes.fromhex("58524749 01 70 4000 3000 02 00 40420f00 0201 0000")),  # IDENTIFY
+        (0x40, 0x04, 0, 0, bytes.fromhex("12750000")),     # SET_FRAME_RATE 29.970 Hz
+        (0x40, 0x05, 0, 0, bytes.fromhex("88130000")),     # SET_EXPOSURE 5000 us
+        (0x40, 0x02, 0, 0, b""),                           # START
+        (0x40, 0x03, 0, 0, b""),                           # STOP (on close)
+    ]
+    # The serial number was read through standard GET_DESCRIPTOR(STRING) requests, LANGID first.
+    strings = [entry for entry in device.control_log if entry[:2] == (0x80, 0x06)]
+    assert strings[0][2] == 0x0300 and strings[0][4] == bytes([4, 3, 0x09, 0x04])
+    assert strings[1][2] == 0x0303 and strings[1][4][2:].decode("utf-16-le") == "XRG-P"
+
+
 def test_rate_and_exposure_reach_the_device_and_status_reports() -> None:
     backend, device, feed = fake()
     with open_source(f"{URL}?rate=250&exposure_ms=2.5", backend=backend) as source:
