@@ -84,3 +84,15 @@ def test_raw_y16_colour_and_gray_frames_convert() -> None:
     with V4l2Source(lambda: gray, bits=8) as source:
         frame = source.read(1.0)
     assert frame.pixel_format == "mono8" and frame.image.shape == (6, 8) and 100 < int(frame.image[0, 0]) < 140
+
+
+@pytest.mark.hardware
+def test_contract_a_real_capture_card(device_urls: dict[str, str]) -> None:
+    """``--device-url v4l2=v4l2:///dev/video0?bits=8``: frames in order with the announced size."""
+    if "v4l2" not in device_urls:
+        pytest.skip("pass --device-url v4l2=v4l2:///dev/videoN")
+    with open_source(device_urls["v4l2"]) as source:
+        got = [source.read(2.0) for _ in range(5)]
+    assert [f.number for f in got] == [0, 1, 2, 3, 4]
+    assert all((f.width, f.height) == (source.width, source.height) for f in got)
+    assert all(b.host_time_s > a.host_time_s for a, b in zip(got, got[1:]))
