@@ -63,9 +63,9 @@ class RecognitionSettings(StrictModel):
     #: Floor (radians) under a view's axis-angle noise: blur and pixelation biases that noise does not show.
     axis_floor_rad: float = Field(0.001, gt=0)
     #: A view whose image is less elongated than this (l1 / l2) gives no axis plane (robot seen end-on).
-    min_view_elongation: float = Field(1.6, ge=1)
+    min_view_elongation: float = Field(1.3, ge=1)
     #: A frame whose 3D axis is more uncertain than this (from the image noise) is flagged ambiguous.
-    max_axis_sigma_deg: float = Field(1.5, gt=0)
+    max_axis_sigma_deg: float = Field(2.5, gt=0)
     #: Noise (px) of a tip along the axis, which weighs the tips' direction against the axis planes.
     tip_sigma_px: float = Field(0.7, gt=0)
 
