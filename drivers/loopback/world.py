@@ -99,7 +99,8 @@ class SimWorld:
                  fluid: Fluid | None = None, gravity: bool = False, up: ArrayLike = (0.0, 0.0, 1.0),
                  start_s_mm: float | None = None, ots_from_world: RigidTransform | None = None,
                  tool_in_robot: RigidTransform | None = None, max_substep_mm: float = 0.05,
-                 max_substeps: int = 64, reevaluate_mm: float = 0.25) -> None:
+                 max_substeps: int = 64, reevaluate_mm: float = 0.25,
+                 background_field_t: ArrayLike = (0.0, 0.0, 0.0)) -> None:
         self.coils = coils
         self.robot = robot
         self.vessel = vessel
@@ -113,11 +114,14 @@ class SimWorld:
         self.ots_from_world = ots_from_world or RigidTransform()
         self.tool_in_robot = tool_in_robot or RigidTransform()
         self.max_substep_mm = max_substep_mm
+        # Uniform field not made by the coils (the Earth's ~50 uT, a nearby magnet): torque, no force.
+        self.background_field_t = np.asarray(background_field_t, float).reshape(3)
         self.max_substeps = max_substeps
         self.reevaluate_mm = reevaluate_mm
         self._cache: tuple[FloatArray, FloatArray] | None = None
         self._cache_point = np.zeros(3)
         self.wall_contacts = 0          # substeps that ended on the wall (diagnostic)
+        self.last_substeps = 0          # substeps used by the last step (diagnostic)
         self.last_field_t = np.zeros(3)
         self.last_force_n = np.zeros(3)
         self._lock = threading.Lock()
@@ -135,7 +139,8 @@ class SimWorld:
                     seed: int | None = 0) -> SimWorld:
         """Build from plain mappings: ``coils.yaml``, the ``vessel`` section of ``vessel.yaml``, a robot
         entry (extra keys such as tip angles are ignored) and the ``world`` section of ``vessel.yaml``
-        (``gravity``, ``fluid``, ``coil_perturbation``, ``start_s_mm``, ``ots_from_world``, ``tool_in_robot``)."""
+        (``gravity``, ``fluid``, ``coil_perturbation``, ``start_s_mm``, ``ots_from_world``, ``tool_in_robot``,
+        ``background_field_t``)."""
         world = dict(world or {})
         robot_args = {k: robot[k] for k in _ROBOT_KEYS if robot and k in robot}
         fluid = Fluid(**world["fluid"]) if world.get("fluid") else None
@@ -143,7 +148,8 @@ class SimWorld:
                    Vessel.from_config(vessel), seed, fluid=fluid, gravity=bool(world.get("gravity", False)),
                    start_s_mm=world.get("start_s_mm"),
                    ots_from_world=RigidTransform.from_mapping(world.get("ots_from_world")),
-                   tool_in_robot=RigidTransform.from_mapping(world.get("tool_in_robot")))
+                   tool_in_robot=RigidTransform.from_mapping(world.get("tool_in_robot")),
+                   background_field_t=world.get("background_field_t", (0.0, 0.0, 0.0)))
 
     # -- state -----------------------------------------------------------------------------------
     @property
@@ -175,8 +181,8 @@ class SimWorld:
 
     # -- physics ---------------------------------------------------------------------------------
     def field_at(self, point_mm: ArrayLike, currents_a: ArrayLike) -> FloatArray:
-        """True field (T) at a point for the given coil currents."""
-        return self.coils.field_at(point_mm, currents_a)
+        """True field (T) at a point for the given coil currents (background field included)."""
+        return self.coils.field_at(point_mm, currents_a) + self.background_field_t
 
     def _per_amp_here(self) -> tuple[FloatArray, FloatArray]:
         """Per-ampere field and gradient at the robot; magpylib is re-evaluated after each
@@ -192,7 +198,7 @@ class SimWorld:
 
     def _forces(self, currents: FloatArray) -> tuple[FloatArray, FloatArray]:
         b_per_amp, g_per_amp = self._per_amp_here()
-        b = b_per_amp @ currents
+        b = b_per_amp @ currents + self.background_field_t
         grad = g_per_amp @ currents                      # grad[i, j] = dB_i / dx_j
         force = grad.T @ (self.moment_am2 * self._direction)   # F_j = sum_i m_i dB_i/dx_j
         if self.gravity:
@@ -210,7 +216,7 @@ class SimWorld:
             raise ValueError(f"dt_s must be a finite non-negative number, got {dt_s}")
         with self._lock:
             remaining = dt_s
-            substeps = 0
+            substeps = 0  # kept for diagnostics (last_substeps)
             while remaining > 1e-12:
                 b, force = self._forces(currents)
                 velocity = velocity_m_s(self._direction, force, self.drag) * 1e3
@@ -233,3 +239,4 @@ class SimWorld:
                 remaining -= h
                 substeps += 1
             self._t += dt_s
+            self.last_substeps = substeps

@@ -61,6 +61,19 @@ def test_torque_aligns_the_robot_with_a_uniform_field_at_the_overdamped_rate(ben
     assert np.linalg.norm(world.pose.centroid_mm) < 1e-3   # a uniform field exerts no force
 
 
+def test_background_field_turns_but_does_not_push(bench: TrueCoils) -> None:
+    vessel = Vessel([[0, 0, -40], [0, 0, 40]], radius_mm=30.0)
+    earth = np.array([0.0, 20e-6, -45e-6])
+    world = _world(bench, vessel, background_field_t=earth)
+    world.set_pose([0, 0, 0], [1.0, 0.0, 0.0])
+    currents = _currents(field_axis=0, helmholtz_a=0.01)
+    total = world.field_at([0, 0, 0], currents)
+    assert np.allclose(total - bench.field_at([0, 0, 0], currents), earth)
+    world.step(1.0, currents)
+    assert np.allclose(world.pose.direction, total / np.linalg.norm(total), atol=1e-9)
+    assert np.linalg.norm(world.pose.centroid_mm) < 1e-6
+
+
 def test_align_is_exact_for_any_step_and_handles_antiparallel() -> None:
     d = align(np.array([0.0, 0.0, -1.0]), np.array([0.0, 0.0, 1e-3]), 0.03, 1e-8, 1.0)
     assert np.allclose(d, [0, 0, 1], atol=1e-6)   # an unstable equilibrium is left, not kept
