@@ -276,6 +276,10 @@ def _end_limits(smooth: np.ndarray, mask: np.ndarray, s: np.ndarray, s_lo: float
     """
     keep = np.ones(mask.shape, dtype=bool)
     values, positions = smooth[mask], s[mask]
+    # ...nor can it get wider than it is along its core (a cone narrows, a vessel need not).
+    inside = (positions >= s_lo) & (positions <= s_hi)
+    core_width = np.bincount(np.floor(positions[inside] - s_lo).astype(np.int64)) if inside.any() else np.zeros(1)
+    max_width = 1.2 * float(np.median(core_width)) + 2.0
     for sign, start in ((1.0, s_hi), (-1.0, s_lo)):
         beyond = sign * (positions - start)
         outside = beyond > 0
@@ -284,9 +288,11 @@ def _end_limits(smooth: np.ndarray, mask: np.ndarray, s: np.ndarray, s_lo: float
         bins = np.floor(beyond[outside]).astype(np.int64)
         peak = np.full(int(bins.max()) + 1, -np.inf)
         np.maximum.at(peak, bins, values[outside])
+        width = np.bincount(bins, minlength=len(peak))
         stop = len(peak)
         for b in range(len(peak)):
-            if not np.isfinite(peak[b]) or (b >= _FADE_STEP and peak[b] > peak[b - _FADE_STEP] - tolerance):
+            if (not np.isfinite(peak[b]) or width[b] > max_width
+                    or (b >= _FADE_STEP and peak[b] > peak[b - _FADE_STEP] - tolerance)):
                 stop = b
                 break
         keep &= sign * (s - start) < stop
