@@ -29,6 +29,7 @@ mid-chunk, in the summary) yields every complete message before the cut and reco
 """
 from __future__ import annotations
 
+import atexit
 import datetime as _dt
 import json
 import logging
@@ -36,6 +37,7 @@ import math
 import os
 import threading
 import time
+import weakref
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import IO, Any
@@ -54,6 +56,21 @@ __all__ = ["Recorder", "RecordingError", "RecordingReader", "RecordingSummary", 
 
 class RecordingError(ApplianceError, OSError):
     """The recording cannot be created or written (disk full, no permission, file exists, closed)."""
+
+
+#: Recorders not closed yet. At interpreter exit they are closed, so what the background thread still
+#: holds reaches the file (a daemon thread would otherwise die with it) and the summary is written.
+_OPEN: weakref.WeakSet[Recorder] = weakref.WeakSet()
+
+
+@atexit.register
+def _close_forgotten() -> None:
+    for recorder in list(_OPEN):
+        log.warning("%s: recording still open at exit; closing it", recorder.path)
+        try:
+            recorder.close()
+        except Exception as err:  # noqa: BLE001 - at exit there is no caller left to raise to
+            log.error("%s: could not close the recording at exit: %s", recorder.path, err)
 
 
 def jsonable(value: Any, where: str = "") -> Any:
@@ -130,6 +147,7 @@ class Recorder:
         except OSError as err:
             raise RecordingError(f"{path}: cannot write the recording ({err.strerror or err})") from err
         self._background = BackgroundWriter(self._sink, max_lag_frames=max_lag_frames) if threaded else None
+        _OPEN.add(self)
 
     @classmethod
     def create(cls, path: Path, *, config: Mapping[str, Any], calibration: Mapping[str, Any],
@@ -231,6 +249,7 @@ class Recorder:
             if self._closed:
                 return
             self._closed = True
+            _OPEN.discard(self)
             if self._background is not None:
                 self._guarded(self._background.close)
             else:

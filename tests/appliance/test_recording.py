@@ -221,6 +221,21 @@ def test_killed_writer_process(tmp_path: Path) -> None:
     assert pairs == [(n, n) for n in range(len(pairs))] and len(pairs) + reader.summary().messages["/status"] >= 4
 
 
+def test_a_recorder_left_open_is_closed_at_exit(tmp_path: Path) -> None:
+    path = tmp_path / "forgotten.mcap"
+    script = textwrap.dedent(f"""
+        import numpy as np
+        from appliance.recording import Recorder
+        rec = Recorder.create({str(path)!r}, config={{}}, calibration={{"views": {{}}}})
+        for frame in range(3):
+            rec.write_frames(frame / 30.0, frame, np.zeros((48, 64), np.uint16), np.zeros((48, 64), np.uint16))
+            rec.write_timing(frame / 30.0, frame, {{"total": 1.0}})
+    """)
+    subprocess.run([sys.executable, "-c", script], cwd=Path(__file__).parents[2], timeout=60, check=True)
+    reader = RecordingReader(path)
+    assert [n for n, *_ in reader.frames()] == [0, 1, 2] and reader.complete
+
+
 @pytest.mark.parametrize("threaded", [False, True])
 def test_every_frame_boundary_is_forced_to_disk(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                                 threaded: bool) -> None:
@@ -258,6 +273,10 @@ def test_threaded_writer_writes_what_the_direct_one_does(tmp_path: Path) -> None
                 _write_frame(rec, frame)
                 rec.flush()  # paced like a loop whose disk keeps up: nothing is dropped
             assert rec.images_dropped == 0
+            # A copy taken while the recorder is still open (as a crash would leave it) reads in full.
+            copy = tmp_path / f"copy_{threaded}.mcap"
+            copy.write_bytes(path.read_bytes())
+            assert [n for n, *_ in RecordingReader(copy).frames()] == [0, 1, 2, 3, 4]
         reader = RecordingReader(path)
         contents.append(([(n, m) for n, _, m in reader.messages()],
                          [(n, p.tobytes(), q.tobytes()) for n, _, p, q in reader.frames()]))
