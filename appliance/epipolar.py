@@ -24,7 +24,8 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 
-def _points(values: Any, dim: int, what: str) -> np.ndarray:
+def as_points(values: Any, dim: int, what: str) -> np.ndarray:
+    """Accept one point ``(dim,)`` or many ``(N, dim)``; return float64 ``(N, dim)``."""
     array = np.asarray(values, dtype=np.float64)
     if array.ndim == 1:
         array = array[None, :]
@@ -34,7 +35,7 @@ def _points(values: Any, dim: int, what: str) -> np.ndarray:
 
 
 def _pair(uv_p: Any, uv_q: Any) -> tuple[np.ndarray, np.ndarray]:
-    a, b = _points(uv_p, 2, "uv_p"), _points(uv_q, 2, "uv_q")
+    a, b = as_points(uv_p, 2, "uv_p"), as_points(uv_q, 2, "uv_q")
     if len(a) != len(b):
         raise ValueError(f"uv_p and uv_q must pair up: {len(a)} vs {len(b)} points")
     return a, b
@@ -66,7 +67,7 @@ def epipolar_lines(F: np.ndarray, uv: Any, *, from_view: str = "p") -> np.ndarra
     """
     if from_view not in ("p", "q"):
         raise ValueError(f"from_view must be 'p' or 'q', got {from_view!r}")
-    x = _homogeneous(_points(uv, 2, "uv"))
+    x = _homogeneous(as_points(uv, 2, "uv"))
     lines = x @ F.T if from_view == "p" else x @ F  # F x_p, or F^T x_q, row-wise
     norm = np.hypot(lines[:, 0], lines[:, 1])
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -148,8 +149,8 @@ def epipolar_plane_angle_deg(p: View, q: View, points_mm: Any, directions: Any) 
     views, so its two end-point pairings fit equally well: the mirror ambiguity of architecture.md.
     Recognition compares this angle with what its pixel noise can resolve.
     """
-    X = _points(points_mm, 3, "points_mm")
-    d = _points(directions, 3, "directions")
+    X = as_points(points_mm, 3, "points_mm")
+    d = as_points(directions, 3, "directions")
     normal = np.cross(p.source_mm - X, q.source_mm - X)
     normal /= np.linalg.norm(normal, axis=1, keepdims=True)
     d = d / np.linalg.norm(d, axis=1, keepdims=True)

@@ -29,6 +29,7 @@ from pydantic_core import PydanticCustomError
 
 from appliance.config_io import StrictModel, read_yaml, validate_model
 from appliance.errors import CalibrationError
+from appliance.epipolar import as_points
 
 log = logging.getLogger(__name__)
 
@@ -43,14 +44,6 @@ MIN_AXIS_ANGLE_DEG = 1.0
 _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
 
 
-def _as_points(values: Any, dim: int, what: str) -> np.ndarray:
-    """Accept one point ``(dim,)`` or many ``(N, dim)``; return float64 ``(N, dim)``."""
-    array = np.asarray(values, dtype=np.float64)
-    if array.ndim == 1:
-        array = array[None, :]
-    if array.ndim != 2 or array.shape[1] != dim:
-        raise ValueError(f"{what}: expected shape (N, {dim}) or ({dim},), got {np.shape(values)}")
-    return array
 
 
 def _frozen(array: np.ndarray) -> np.ndarray:
@@ -129,7 +122,7 @@ class View:
     # -- point maps ---------------------------------------------------------------------------------
     def to_camera(self, points_mm: Any) -> np.ndarray:
         """World points (N,3) in camera coordinates (N,3); ``z`` is the depth along the optical axis."""
-        return _as_points(points_mm, 3, "points_mm") @ self.R.T + self.t
+        return as_points(points_mm, 3, "points_mm") @ self.R.T + self.t
 
     def _distort(self, xy: np.ndarray) -> np.ndarray:
         """OpenCV's radial-tangential(-rational) model on normalised coordinates (N,2)."""
@@ -166,7 +159,7 @@ class View:
 
     def undistort_points(self, uv: Any) -> np.ndarray:
         """Observed (distorted) pixels (N,2) -> ideal pixels (N,2) of the same ``K``: ``P`` applies to them."""
-        uv = _as_points(uv, 2, "uv")
+        uv = as_points(uv, 2, "uv")
         if not self.has_distortion:
             return uv.copy()
         xy = self._pixels_to_normalised(uv)
@@ -187,7 +180,7 @@ class View:
 
         The plane of an image line: e.g. the robot's image axis back-projects to a plane holding its 3D axis.
         """
-        _, directions = self.rays(np.vstack([_as_points(uv_a, 2, "uv_a"), _as_points(uv_b, 2, "uv_b")]))
+        _, directions = self.rays(np.vstack([as_points(uv_a, 2, "uv_a"), as_points(uv_b, 2, "uv_b")]))
         normal = np.cross(directions[0], directions[1])
         norm = np.linalg.norm(normal)
         if norm < 1e-12:
@@ -197,7 +190,7 @@ class View:
 
     def contains(self, uv: Any, margin_px: float = 0.0) -> np.ndarray:
         """Which pixels (N,) lie inside the image (pixel centres at integers), ``margin_px`` from its edge."""
-        uv = _as_points(uv, 2, "uv")
+        uv = as_points(uv, 2, "uv")
         w, h = self.image_size
         return ((uv[:, 0] >= -0.5 + margin_px) & (uv[:, 0] <= w - 0.5 - margin_px)
                 & (uv[:, 1] >= -0.5 + margin_px) & (uv[:, 1] <= h - 0.5 - margin_px))

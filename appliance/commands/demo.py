@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from appliance.commands._common import prepare_frame_folder
 
 NAME = "demo"
 HELP = "render a biplane scene of a robot moving through a vessel, track it and compare with the truth"
@@ -84,21 +85,7 @@ class DemoScene:
     vessel_radius_mm: float
 
 
-def _prepare_folder(out: Path | None) -> Path:
-    from appliance.errors import InputDataError
 
-    if out is None:
-        return Path(tempfile.mkdtemp(prefix="appliance-demo-"))
-    if out.exists() and not out.is_dir():
-        raise InputDataError(f"{out}: exists and is not a folder")
-    for plane in ("p", "q"):
-        if (out / plane).is_dir() and any((out / plane).iterdir()):
-            raise InputDataError(f"{out}: already holds frames in {plane}/; choose a new or empty folder")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise InputDataError(f"{out}: cannot create the folder ({err.strerror or err})") from err
-    return out
 
 
 def _progress(text: str) -> None:
@@ -222,7 +209,7 @@ def run(args: argparse.Namespace) -> int:
     from appliance.robots import load_robots, select_robot
 
     select_robot(load_robots(), args.robot)  # a bad --robot fails before any folder is made
-    out = _prepare_folder(args.out)
+    out = Path(tempfile.mkdtemp(prefix="appliance-demo-")) if args.out is None else prepare_frame_folder(args.out)
     started = time.monotonic()
     scene = render_scene(out, args.robot, args.frames, args.seed, args.vessel_radius)
     rendered = time.monotonic()

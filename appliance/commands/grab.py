@@ -27,19 +27,13 @@ import sys
 import time
 from pathlib import Path
 from typing import Any
+from appliance.commands._common import count, prepare_frame_folder
 
 NAME = "grab"
 HELP = "record biplane frame pairs from two frame sources into a biplane frame folder, or list grabbers"
 
 
-def _count(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
-    return value
+
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -47,7 +41,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--source", metavar="URL", action="append", default=[],
                         help="a frame source, twice (plane p and plane q): usb://VID:PID[?serial=..], "
                              "v4l2:///dev/videoN?plane=.., file://DIR?plane=.., loopback://?plane=..")
-    parser.add_argument("--frames", metavar="N", type=_count, default=100, help="pairs to record (default 100)")
+    parser.add_argument("--frames", metavar="N", type=count, default=100, help="pairs to record (default 100)")
     parser.add_argument("--out", metavar="DIR", type=Path,
                         help="biplane folder to write (new or empty); without it the pairs are only counted")
     parser.add_argument("--format", choices=("png", "tif"), default="png", help="image format (default png)")
@@ -155,18 +149,7 @@ def _loopback_source(url: Any, scene: Any) -> Any:
                                seed=query_int(url, "seed", None), name=f"loopback-{plane}")
 
 
-def _prepare_folder(out: Path) -> None:
-    from appliance.errors import InputDataError
 
-    if out.exists() and not out.is_dir():
-        raise InputDataError(f"{out}: exists and is not a folder")
-    for plane in ("p", "q"):
-        if (out / plane).is_dir() and any((out / plane).iterdir()):
-            raise InputDataError(f"{out}: already holds frames in {plane}/; choose a new or empty folder")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise InputDataError(f"{out}: cannot create the folder ({err.strerror or err})") from err
 
 
 def _grab(args: argparse.Namespace) -> int:
@@ -184,7 +167,7 @@ def _grab(args: argparse.Namespace) -> int:
     if planes != ["p", "q"]:
         raise ConfigError(f"the two sources must be planes p and q, got {planes}; add ?plane=p / ?plane=q")
     if args.out is not None:
-        _prepare_folder(args.out)
+        prepare_frame_folder(args.out)
     pairer = BiplanePairer(match=args.match, mode="all", max_skew_s=args.max_skew_ms / 1000.0)
     skews: list[float] = []
     interleaved = 0

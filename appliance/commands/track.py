@@ -17,10 +17,9 @@ import os
 import sys
 import time
 from collections import Counter
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any
+from appliance.commands._common import output_stream, positive_float
 
 if TYPE_CHECKING:
     from appliance.geometry import Calibration
@@ -34,14 +33,7 @@ log = logging.getLogger(__name__)
 DEFAULT_FPS = 30.0
 
 
-def _positive(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"must be positive, got {text}")
-    return value
+
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -56,7 +48,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "records then carry its nominal length for comparison")
     parser.add_argument("--estimator", choices=("weighted", "paper"),
                         help="feature estimator (default: the recognition settings' default, 'weighted')")
-    parser.add_argument("--fps", type=_positive, default=DEFAULT_FPS, metavar="HZ",
+    parser.add_argument("--fps", type=positive_float, default=DEFAULT_FPS, metavar="HZ",
                         help=f"frame rate for the records' t = frame / fps (default {DEFAULT_FPS:g})")
 
 
@@ -81,19 +73,6 @@ def load_inputs(folder: Path, calibration: Path | None) -> tuple[BiplaneFolder, 
     return frames, cal
 
 
-@contextmanager
-def _output(path: Path | None) -> Iterator[IO[str]]:
-    from appliance.errors import InputDataError
-
-    if path is None:
-        yield sys.stdout
-        return
-    try:
-        stream = path.open("w", encoding="utf-8")
-    except OSError as err:
-        raise InputDataError(f"{path}: cannot write the posture records ({err.strerror or err})") from err
-    with stream:
-        yield stream
 
 
 class _Progress:
@@ -157,7 +136,7 @@ def run(args: argparse.Namespace) -> int:
     tracker = PostureTracker(calibration, settings=settings)
     log.info("tracking %d frame pairs of %s", len(frames), frames.root)
     try:
-        with _output(args.out) as out:
+        with output_stream(args.out, "posture records") as out:
             counts = track_folder(frames, tracker, out, fps=args.fps, extra=extra)
     except BrokenPipeError:
         # e.g. `appliance track DIR | head`: the reader has what it wanted; not an error.

@@ -19,7 +19,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 
 # A conical head may take at most this share of the body's length, so a stubby robot with a blunt
