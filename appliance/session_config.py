@@ -16,7 +16,7 @@ from typing import Literal
 
 from pydantic import Field, field_validator, model_validator
 
-from appliance.config_io import StrictModel, config_path, load_model
+from appliance.config_io import StrictModel, config_path, load_model, validate_model
 from appliance.control import FollowerSettings, SafetySettings
 
 SCHEMA_VERSION = 1
@@ -264,3 +264,10 @@ def load_session(path: str | Path | None = None) -> Session:
     """Read and validate a session file (default: the shipped ``config/sim.yaml``)."""
     source = Path(path) if path is not None else config_path("sim.yaml")
     return Session(load_model(source, SessionConfig), source.resolve())
+
+
+def session_from_mapping(data: object, source: str | Path) -> Session:
+    """Validate an already-parsed session (tests, tools that derive a session from another); relative file
+    names resolve as if the session were the file ``source``."""
+    source = Path(source)
+    return Session(validate_model(SessionConfig, data, str(source)), source.resolve())
