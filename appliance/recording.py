@@ -37,7 +37,6 @@ import math
 import os
 import threading
 import time
-import weakref
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import IO, Any
@@ -60,7 +59,8 @@ class RecordingError(ApplianceError, OSError):
 
 #: Recorders not closed yet. At interpreter exit they are closed, so what the background thread still
 #: holds reaches the file (a daemon thread would otherwise die with it) and the summary is written.
-_OPEN: weakref.WeakSet[Recorder] = weakref.WeakSet()
+#: A strong set: a forgotten recorder must stay reachable until then (its thread holds only the sink).
+_OPEN: set[Recorder] = set()
 
 
 @atexit.register
