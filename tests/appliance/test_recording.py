@@ -140,6 +140,8 @@ def _write_unclosed(path: Path, frames: int) -> list[tuple[int, int, int]]:
         # posture, command, currents, ots, timing per frame; images of frames 0, 2, 4...
         boundaries.append((path.stat().st_size, 5 * (frame + 1), frame // 2 + 1))
     stream.close()  # the process died: no summary, no footer
+    with pytest.raises(ValueError, match="closed file"):
+        rec.close()  # its file is gone: closing fails loudly (and the exit hook has nothing left to do)
     return boundaries
 
 
@@ -260,6 +262,8 @@ def test_side_channels_are_flushed_while_imaging_is_silent(tmp_path: Path) -> No
     for k in range(10):
         rec.write_ots(k * 0.05, {"handle": "01", "k": k})  # 0.45 s of OTS samples, no frame boundary
     stream.close()
+    with pytest.raises(ValueError, match="closed file"):
+        rec.close()
     got = [m["k"] for _, _, m in RecordingReader(path).messages("/ots")]
     assert got[:4] == [0, 1, 2, 3] and len(got) >= 7  # at most max_unflushed_s (0.1 s) of them lost
 
