@@ -87,6 +87,9 @@ class Blob:
     centroid_px: tuple[float, float]  # weighted centroid in image pixels (for candidate pairing)
     touches_border: bool  # the support reaches the edge of the searched region: the robot may be cut
     width_px: float = 0.0  # the body's diameter from its weighted spread across the axis (4 sqrt(l2))
+    #: How much the interpolated background under the body varies, as a fraction of the body's peak:
+    #: near 0 on a clean background, large where the robot overlaps a vessel or another object.
+    clutter: float = 0.0
 
 
 def log_background(image: np.ndarray, scale_px: int = 48, dark_level: float = 0.0) -> np.ndarray:
@@ -262,7 +265,8 @@ def _blob_from_component(a: np.ndarray, smooth: np.ndarray, labels: np.ndarray, 
     return Blob(window=window, weights=weights, mask=mask, pixel_count=int(mask.sum()), peak=height,
                 baseline=baseline, sigma=sigma, strength=float(m["m00"]),
                 centroid_px=(window.x0 + m["m10"] / m["m00"], window.y0 + m["m01"] / m["m00"]),
-                touches_border=edge, width_px=4.0 * float(np.sqrt(max(minor / m["m00"], 0.0625))))
+                touches_border=edge, width_px=4.0 * float(np.sqrt(max(minor / m["m00"], 0.0625))),
+                clutter=float(np.ptp(background[near])) / height if near.any() else 0.0)
 
 
 def _end_limits(smooth: np.ndarray, mask: np.ndarray, s: np.ndarray, s_lo: float, s_hi: float,

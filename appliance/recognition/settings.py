@@ -74,6 +74,8 @@ class RecognitionSettings(StrictModel):
     epipolar_band_px: float = Field(6.0, gt=0)
     #: The tips of the better pairing must be within this RMS epipolar distance (px), or the frame is lost.
     tips_band_px: float = Field(12.0, gt=0)
+    #: ... or within this fraction of the longer image of the robot (a long robot's cone tip is less sharp).
+    tips_band_fraction: float = Field(0.2, gt=0)
     #: Pairings A/B are "clearly separated" when the worse RMS epipolar distance exceeds the better by
     #: this many pixels; otherwise the frame is ambiguous.
     ambiguity_px: float = Field(3.0, gt=0)
@@ -87,6 +89,10 @@ class RecognitionSettings(StrictModel):
     #: flat end's, and longer by at least ``head_min_ramp_px``.
     head_ramp_ratio: float = Field(1.6, gt=1)
     head_min_ramp_px: float = Field(1.0, ge=0)
+
+    #: A frame whose background under the robot varies by more than this fraction of the robot's
+    #: contrast (overlap with a vessel, say) is flagged ambiguous: reduced accuracy.
+    max_clutter: float = Field(0.15, gt=0)
 
     # -- tracking -----------------------------------------------------------------------------------
     #: Margin (px) of the region of interest around the predicted robot image.

@@ -100,7 +100,8 @@ class PostureTracker:
         if mismatch > self.settings.epipolar_band_px:
             failure = (f"the robot images of the two views do not correspond (centroids {mismatch:.1f} px from "
                        f"each other's epipolar lines)")
-        elif tips_rms > self.settings.tips_band_px:
+        elif tips_rms > max(self.settings.tips_band_px, self.settings.tips_band_fraction * max(
+                float(np.linalg.norm(f.tips[0] - f.tips[1])) for f in feats.values())):
             failure = (f"the robot images' ends do not correspond in either pairing (RMS epipolar distance "
                        f"{tips_rms:.1f} px); one view's blob is not (only) the robot")
         if failure is not None:
@@ -247,8 +248,18 @@ class PostureTracker:
             axis = axis / norm if norm > 0 else feat.axis
             observations[name] = ViewObservation(feat.centroid, tips, axis, blobs[name].pixel_count,
                                                  feat.eigenvalues, 0 if rec.head_identified else None)
-        reason = "; ".join(rec.reasons) if rec.reasons else None
-        return Posture(frame=frame, t=t, ok=True, ambiguous=rec.ambiguous, centroid_mm=rec.centroid,
+        reasons = list(rec.reasons)
+        ambiguous = rec.ambiguous
+        cluttered = [name for name in VIEWS if blobs[name].clutter > self.settings.max_clutter]
+        if cluttered:
+            # The background under the robot had to be interpolated across another structure; the pose
+            # is usually still right, but not to the usual accuracy.
+            ambiguous = True
+            reasons.append(f"the robot overlaps another structure in view {' and '.join(cluttered)} "
+                           f"(background under it varies by {max(blobs[n].clutter for n in cluttered):.0%} of "
+                           f"its contrast); reduced accuracy")
+        reason = "; ".join(reasons) if reasons else None
+        return Posture(frame=frame, t=t, ok=True, ambiguous=ambiguous, centroid_mm=rec.centroid,
                        direction=rec.direction, tips_mm=rec.tips, head_identified=rec.head_identified,
                        length_mm=rec.length_mm, reprojection_px=rec.reprojection_px, views=observations,
                        reason=reason, direction_candidates=rec.candidates,
