@@ -39,6 +39,9 @@ from drivers.ndi_tracker import NDITracker, ToolSample
 
 log = logging.getLogger(__name__)
 
+#: Recognition noise allowed on top of the robot's reach when gating a new posture (mm).
+JUMP_MARGIN_MM = 2.0
+
 
 class ListenerError(ApplianceError):
     """A loop listener (recorder, live view) failed; the loop stopped and the coils were zeroed."""
@@ -118,7 +121,8 @@ class LoopStats:
     steps: int = 0
     pairs: int = 0
     tracked: int = 0
-    lost: int = 0            # pairs where recognition found no robot
+    lost: int = 0            # pairs where recognition found no (plausible) robot
+    rejected: int = 0        # ... of which recognition reported one too far from the last to be it
     no_pair: int = 0         # steps without a new pair
     latency_write_s: list[float] = field(default_factory=list)
     latency_ack_s: list[float] = field(default_factory=list)
@@ -270,6 +274,11 @@ class Orchestrator:
             for name, us in posture.timings_us.items():
                 stages[f"recognition.{name}"] = us
             tracked = posture.ok and posture.centroid_mm is not None
+            if tracked and not self._plausible(posture.centroid_mm, now):
+                # A robot cannot jump: a far-off "robot" is something else (a contrast-filled vessel
+                # when the real one left the images). Treated as lost, so the supervisor holds and zeroes.
+                tracked = False
+                self.stats.rejected += 1
             self.stats.tracked += tracked
             self.stats.lost += not tracked
         stages["recognition"] = (time.perf_counter() - mark) * 1e6
@@ -355,6 +364,19 @@ class Orchestrator:
             return None, None
         except ApplianceError as err:   # a grabber vanished, a link broke, a source ended
             return None, f"X-ray frames: {err}"
+
+    def _plausible(self, centroid: np.ndarray, now: float) -> bool:
+        """Whether ``centroid`` is reachable from the last accepted one at the supervisor's speed limit (plus
+        ``JUMP_MARGIN_MM`` for recognition noise); the gate widens the longer the robot was not seen."""
+        if self._last_tracked is None:
+            return True
+        t_last, last = self._last_tracked
+        reach = self.safety.settings.max_robot_speed_mm_s * max(now - t_last, 0.0) + JUMP_MARGIN_MM
+        jump = float(np.linalg.norm(centroid - last))
+        if jump <= reach:
+            return True
+        log.info("posture rejected: %.1f mm from the last one in %.3f s (reach %.1f mm)", jump, now - t_last, reach)
+        return False
 
     def _on_amplifier_event(self, event: AmplifierEvent) -> None:
         # Called on the driver's heartbeat thread: only hand the event over.
