@@ -154,10 +154,30 @@ class SimulatedLab:
         return pose.centroid_mm, pose.direction
 
 
+def session_for_robot(session: Any, robot: Any, folder: Path) -> Any:
+    """The simulation session with a vessel phantom the robot fits in: the simulated world refuses a robot as
+    wide as the lumen (robot #6 is 5 mm across, the default lumen 5 mm). The robot is clamped in its holder,
+    so the phantom is only the images' background; its lumen is widened to 1.6 diameters when needed."""
+    import yaml
+
+    from appliance.config_io import read_yaml
+    from appliance.session_config import Session
+
+    data = read_yaml(session.vessel_path)
+    vessel = data.get("vessel") if isinstance(data, dict) else None
+    if not isinstance(vessel, dict) or 2.0 * float(vessel.get("radius_mm", 0.0)) > 1.2 * robot.diameter_mm:
+        return session
+    vessel["radius_mm"] = 0.8 * robot.diameter_mm
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / f"vessel_robot{robot.id}.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
+    return Session(session.config.model_copy(update={"vessel": str(path)}), session.source)
+
+
 def _robot_choice(text: str) -> str:
-    if text == "all" or text.isdigit():
+    if text == "all" or all(part.strip().isdigit() for part in text.split(",")):
         return text
-    raise argparse.ArgumentTypeError(f"expected a robot number or 'all', got {text!r}")
+    raise argparse.ArgumentTypeError(f"expected a robot number, numbers separated by commas, or 'all', got {text!r}")
 
 
 def _positive(text: str) -> int:
@@ -173,8 +193,8 @@ def _positive(text: str) -> int:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", type=Path, metavar="YAML", help="session file (default: config/sim.yaml)")
     parser.add_argument("--robot", type=_robot_choice, metavar="N|all",
-                        help="robot number of the catalogue, or 'all' (default: all in simulation, the session's "
-                             "robot on a bench)")
+                        help="robot number of the catalogue (or several: 1,4), or 'all' (default: all in simulation, "
+                             "the session's robot on a bench)")
     parser.add_argument("--postures", type=_positive, default=3, metavar="K", help="postures per robot (default 3)")
     parser.add_argument("--samples", type=_positive, default=30, metavar="N",
                         help="biplane pairs per posture (default 30, the protocol's minimum)")
@@ -215,7 +235,8 @@ def run(args: argparse.Namespace) -> int:
     config = session.config
     catalogue = load_robots(session.robots_path)
     choice = args.robot or ("all" if config.is_simulation else str(config.robot.id))
-    robots = [catalogue[k] for k in sorted(catalogue)] if choice == "all" else [select_robot(catalogue, int(choice))]
+    robots = [catalogue[k] for k in sorted(catalogue)] if choice == "all" else \
+        [select_robot(catalogue, int(part)) for part in dict.fromkeys(choice.split(","))]
     plan = Plan(postures=args.postures, samples=args.samples)
     holder = _holder(args, session)
     coils = load_coils(session.coils_path)
@@ -232,7 +253,18 @@ def run(args: argparse.Namespace) -> int:
             return OperatorLab(str(args.pointer_rom), args.fiducials or 0)
 
     say(f"{len(robots)} robot(s) x {plan.postures} postures x {plan.samples} samples from {session.source}")
-    result = run_validation(session, robots, plan, lab_factory, holder, coils, progress=say)
+    adapt = None
+    widened: list[int] = []
+    if config.is_simulation:
+        def adapt(robot: Any) -> Any:
+            adapted = session_for_robot(session, robot, args.out / "sim")
+            if adapted is not session:
+                widened.append(robot.id)
+            return adapted
+    result = run_validation(session, robots, plan, lab_factory, holder, coils, progress=say, session_for=adapt)
+    if widened:
+        result.notes.append(f"robots {widened}: the simulated vessel phantom was widened to 1.6 robot diameters "
+                            f"(the robot is as wide as its lumen; files in sim/)")
     paths = write_report(args.out, result)
     print(paths["table_md"].read_text(encoding="utf-8"))
     for key in ("table_md", "table_csv", "boxplots", "samples", "summary"):

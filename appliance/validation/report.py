@@ -106,6 +106,7 @@ def _markdown(result: ValidationResult, rows: list[dict[str, str]], summary: dic
             stats = statistics(run.samples)
             lines.append(f"| {run.robot.id} | {mean_sd_text(stats['truth_position_mm'], 3)} | "
                          f"{mean_sd_text(stats['truth_axis_deg'], 2)} | {mean_sd_text(stats['truth_tip_mean_mm'], 3)} |")
+    lines += [""] + [f"Note: {note}" for note in result.notes]
     lines += ["", "Seed paper: 0.2-0.4 mm and 1-2 deg. Box plots: boxplots.png; every sample: samples.csv.", ""]
     return "\n".join(lines)
 

@@ -190,8 +190,12 @@ def _robot_line(robot: RobotSpec) -> str:
 
 
 def run_validation(session: Session, robots: Sequence[RobotSpec], plan: Plan, lab_factory: LabFactory,
-                   holder: RigidTransform, coils: Any, *, progress: Progress = lambda _: None) -> ValidationResult:
-    """The whole session for ``robots`` (see the module docstring)."""
+                   holder: RigidTransform, coils: Any, *, progress: Progress = lambda _: None,
+                   session_for: Callable[[RobotSpec], Session] | None = None) -> ValidationResult:
+    """The whole session for ``robots`` (see the module docstring); ``session_for(robot)`` may adapt the session
+    per robot (in simulation: a vessel phantom wide enough for it)."""
+    if not robots:
+        raise ConfigError("no robot to validate")
     config = session.config
     if config.devices.ots.kind == "none":
         raise ConfigError(f"{session.source.name}: devices.ots: a validation session needs the optical tracker "
@@ -209,7 +213,7 @@ def run_validation(session: Session, robots: Sequence[RobotSpec], plan: Plan, la
         head = f"[{number}/{len(robots)}] {_robot_line(robot)}"
         progress(f"{head}: opening the devices")
         robot_start = time.perf_counter()
-        with open_devices(session, robot, coils) as devices:
+        with open_devices(session_for(robot) if session_for else session, robot, coils) as devices:
             ots = devices.ots
             assert ots is not None   # kind none refused above; the factory opens the others
             lab = lab_factory(devices, robot)
