@@ -1,0 +1,419 @@
+"""Real-time performance of the frame step, measured per stage (``appliance bench``, issue 8).
+
+One run feeds the same biplane frame pairs, one at a time as a grabber would deliver them, through:
+
+* our recognition in steady state: a :class:`~appliance.recognition.PostureTracker` that keeps its
+  history, so every frame after the first searches regions of interest (ROI) around the prediction;
+* our recognition cold: a second tracker reset before every frame (full-frame detection);
+* the plain OpenCV baseline of the issue: per view ``cv2.compare`` of the raw 16-bit frame with one
+  global threshold, ``cv2.findNonZero``, ``cv2.PCACompute2``; then ``cv2.triangulatePoints`` of the
+  two centroids;
+* the memory floor: ``np.copyto`` of both frames into preallocated buffers;
+* control and allocation (path follower, safety supervisor, current allocator) on the steady-state
+  posture, and the amplifier command (``Amplifier.set_currents``) over a real transport to a served
+  amplifier, timed to the return of the port's ``write`` (command written) and to the acknowledgement.
+
+The in-process loop, frame available -> command written, is timed in one piece per frame (recognition
++ control + allocation + limit check, encoding and the ``write`` call; the line's own transfer is
+not in it). The closed loop in simulation (:class:`appliance.simulation.Simulation`: frames through the
+fake USB grabbers, world stepping, rendering) is run separately for frame pairs per second.
+
+Frames come from a :class:`FrameSource` that the caller provides (the CLI builds one from the
+simulated fluoroscope; production code never imports the fakes). Nothing here asserts a time: the
+figures are what the table and the JSON report.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import os
+import platform
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import cv2
+import numpy as np
+
+from appliance.control import ActuationModel, CurrentAllocator, PathFollower, SafetySupervisor, load_coils, load_path
+from appliance.geometry import Calibration
+from appliance.recognition import PostureTracker, RecognitionSettings
+
+log = logging.getLogger(__name__)
+
+#: Stages of the recognition, as :attr:`Posture.timings_us` names them, then the stages after it.
+RECOGNITION_STAGES = ("segmentation", "features", "correspondence", "triangulation")
+STAGES = (*RECOGNITION_STAGES, "recognition", "control_allocation", "amplifier_write", "amplifier_ack")
+MODES = ("roi", "full")
+
+#: Targets of issue 8 (microseconds, ratios).
+TARGET_ROI_P50_US = 60.0
+TARGET_ROI_P99_US = 200.0
+TARGET_BASELINE_RATIO = 20.0
+TARGET_FLOOR_RATIO = 4.0
+TARGET_LOOP_P99_US = 1000.0
+
+
+class FrameSource(Protocol):
+    """Biplane frame pairs with the calibration to recognise them by."""
+
+    calibration: Calibration
+    dark_level: float
+    fps: float
+
+    def pairs(self) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        """Successive (p, q) raw 16-bit images, robot darker than its surroundings."""
+        ...
+
+
+@dataclass
+class _Samples:
+    """Per-frame samples (us) of every stage of one mode."""
+
+    values: dict[str, list[float]] = field(default_factory=dict)
+
+    def add(self, stage: str, us: float) -> None:
+        self.values.setdefault(stage, []).append(us)
+
+
+def percentiles(values: list[float]) -> dict[str, float | None]:
+    """p50 and p99 (same unit as the values), mean and count; None when there are no values."""
+    if not values:
+        return {"p50": None, "p99": None, "mean": None, "n": 0}
+    a = np.asarray(values, dtype=np.float64)
+    p50, p99 = np.percentile(a, [50, 99])
+    return {"p50": float(p50), "p99": float(p99), "mean": float(a.mean()), "n": int(a.size)}
+
+
+class _TimedPort:
+    """A serial port proxy that remembers when its last ``write`` returned (the command is then written:
+    in the kernel's buffer on its way out). Everything else goes to the real port."""
+
+    def __init__(self, port: Any) -> None:
+        object.__setattr__(self, "_port", port)
+        object.__setattr__(self, "written_at", 0.0)
+
+    def write(self, data: bytes) -> int | None:
+        n = self._port.write(data)
+        object.__setattr__(self, "written_at", time.perf_counter())
+        return n
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._port, name)
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        setattr(self._port, name, value)
+
+
+class OpenCvBaseline:
+    """The issue's plain OpenCV pipeline: one global threshold, all dark pixels, PCA, two-centroid triangulation.
+
+    ``threshold`` is one gray level for every frame and both views (the baseline knows nothing of the
+    non-uniform field or the noise). It returns the triangulated centroid (mm), or None when a view has
+    fewer than two pixels below the threshold.
+    """
+
+    def __init__(self, calibration: Calibration, threshold: float) -> None:
+        self.P_p = np.ascontiguousarray(calibration.p.P, dtype=np.float64)
+        self.P_q = np.ascontiguousarray(calibration.q.P, dtype=np.float64)
+        self.threshold = float(threshold)
+
+    @staticmethod
+    def threshold_for(image: np.ndarray, dark_fraction: float = 1e-3) -> float:
+        """A global threshold that keeps the darkest ``dark_fraction`` of a first frame's pixels."""
+        return float(np.quantile(image, dark_fraction))
+
+    def process(self, image_p: np.ndarray, image_q: np.ndarray) -> np.ndarray | None:
+        centroids = []
+        for image in (image_p, image_q):
+            dark = cv2.compare(image, self.threshold, cv2.CMP_LT)
+            points = cv2.findNonZero(dark)
+            if points is None or len(points) < 2:
+                return None
+            mean, _, _ = cv2.PCACompute2(points.reshape(-1, 2).astype(np.float32), mean=None)
+            centroids.append(mean.reshape(2, 1).astype(np.float64))
+        X = cv2.triangulatePoints(self.P_p, self.P_q, centroids[0], centroids[1])
+        return (X[:3] / X[3]).ravel()
+
+
+@dataclass
+class BenchResult:
+    """Every figure of the table; :meth:`to_json` is what ``--json`` writes."""
+
+    config: dict[str, Any]
+    stages: dict[str, dict[str, dict[str, float | None]]]
+    baseline_us: dict[str, float | None]
+    memory_floor_us: dict[str, float | None]
+    loop_us: dict[str, float | None]
+    tracking: dict[str, int]
+    simulation: dict[str, Any] | None = None
+    notes: list[str] = field(default_factory=list)
+
+    def ratio(self, numerator: float | None, denominator: float | None) -> float | None:
+        if numerator is None or denominator is None or denominator <= 0:
+            return None
+        return numerator / denominator
+
+    @property
+    def baseline_ratio(self) -> float | None:
+        """Baseline p50 time over our steady-state recognition p50 time (how many times faster we are)."""
+        return self.ratio(self.baseline_us["p50"], self.stages["roi"]["recognition"]["p50"])
+
+    @property
+    def cold_floor_ratio(self) -> float | None:
+        """Our cold full-frame recognition p50 over the memory floor's p50."""
+        return self.ratio(self.stages["full"]["recognition"]["p50"], self.memory_floor_us["p50"])
+
+    def fps(self) -> dict[str, float | None]:
+        def per_s(stats: dict[str, float | None]) -> float | None:
+            mean = stats.get("mean")
+            return 1e6 / mean if mean else None
+        sim = self.simulation or {}
+        return {"recognition_roi": per_s(self.stages["roi"]["recognition"]),
+                "recognition_full": per_s(self.stages["full"]["recognition"]),
+                "loop_in_process": per_s(self.loop_us),
+                "closed_loop_simulation": sim.get("pairs_per_s")}
+
+    def targets(self) -> dict[str, dict[str, Any]]:
+        roi = self.stages["roi"]["recognition"]
+
+        def check(value: float | None, target: float, at_least: bool = False) -> dict[str, Any]:
+            met = None if value is None else (value >= target if at_least else value <= target)
+            return {"value": value, "target": target, "met": met}
+        return {"roi_p50_us": check(roi["p50"], TARGET_ROI_P50_US),
+                "roi_p99_us": check(roi["p99"], TARGET_ROI_P99_US),
+                "baseline_ratio": check(self.baseline_ratio, TARGET_BASELINE_RATIO, at_least=True),
+                "cold_floor_ratio": check(self.cold_floor_ratio, TARGET_FLOOR_RATIO),
+                "loop_p99_us": check(self.loop_us["p99"], TARGET_LOOP_P99_US)}
+
+    def to_json(self) -> dict[str, Any]:
+        return {"config": self.config, "stages_us": self.stages, "baseline_us": self.baseline_us,
+                "memory_floor_us": self.memory_floor_us, "baseline_ratio": self.baseline_ratio,
+                "cold_floor_ratio": self.cold_floor_ratio, "loop_us": self.loop_us, "fps": self.fps(),
+                "tracking": self.tracking, "simulation": self.simulation, "targets": self.targets(),
+                "notes": self.notes}
+
+
+def machine() -> dict[str, Any]:
+    """What the figures were measured on."""
+    load = os.getloadavg() if hasattr(os, "getloadavg") else (math.nan,) * 3
+    return {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
+            "python": platform.python_version(), "numpy": np.__version__, "opencv": cv2.__version__,
+            "opencv_threads": cv2.getNumThreads(), "load_1min": round(load[0], 2)}
+
+
+def _control_chain() -> tuple[PathFollower, SafetySupervisor, CurrentAllocator]:
+    """The shipped coils and operator's path (config/), as the closed loop uses them."""
+    return PathFollower(load_path()), SafetySupervisor(), CurrentAllocator(ActuationModel(load_coils()))
+
+
+def run_bench(source: FrameSource, frames: int, amplifier_factory: Callable[[Any], Any] | None = None,
+              amplifier_url: str | None = None, moment_am2: float = 1e-3,
+              progress: Callable[[str], None] | None = None,
+              settings: RecognitionSettings | None = None) -> BenchResult:
+    """Measure ``frames`` pairs of ``source`` (see the module docstring); ``amplifier_url`` is a served
+    amplifier (pty path or TCP address) for the command stage, skipped when None. ``amplifier_factory``
+    builds the driver from an open port (default :class:`drivers.amplifier.Amplifier`, no heartbeat: the
+    loop commands every frame). ``moment_am2`` is the robot's magnetic moment, for the force allocation."""
+    from drivers.amplifier import Amplifier
+    from drivers.transport import open_serial
+
+    settings = settings or RecognitionSettings(dark_level=source.dark_level)
+    calibration = source.calibration
+    steady = PostureTracker(calibration, settings)
+    cold = PostureTracker(calibration, settings)
+    follower, safety, allocator = _control_chain()
+    samples = {mode: _Samples() for mode in MODES}
+    baseline_us: list[float] = []
+    floor_us: list[float] = []
+    loop_us: list[float] = []
+    tracking = {"frames": 0, "roi": 0, "fallback_full": 0, "lost_roi": 0, "lost_full": 0}
+    baseline: OpenCvBaseline | None = None
+    buffers: tuple[np.ndarray, np.ndarray] | None = None
+    amplifier = port = None
+    if amplifier_url is not None:
+        port = _TimedPort(open_serial(amplifier_url, timeout=0.05))
+        amplifier = (amplifier_factory or (lambda p: Amplifier(p, heartbeat_period_s=0)))(port)
+        amplifier.enable()
+    commanded = np.zeros(allocator.model.n)
+    dt = 1.0 / source.fps
+    perf = time.perf_counter
+    try:
+        for n, (image_p, image_q) in enumerate(source.pairs()):
+            if n >= frames:
+                break
+            t = n * dt
+            tracking["frames"] += 1
+            # -- steady state, then the whole in-process loop (frame available -> command written)
+            began = perf()
+            posture = steady.process(image_p, image_q, frame=n, t=t)
+            recognised = perf()
+            mode = steady.last_search
+            if n > 0:  # the first frame is the cold start of the tracker, not steady state
+                if mode == "roi":
+                    tracking["roi"] += 1
+                    samples["roi"].add("recognition", (recognised - began) * 1e6)
+                    for stage in RECOGNITION_STAGES:
+                        samples["roi"].add(stage, posture.timings_us.get(stage, 0.0))
+                else:
+                    tracking["fallback_full"] += 1
+                tracking["lost_roi"] += not posture.ok
+            mark = perf()
+            if posture.ok and posture.centroid_mm is not None:
+                axis = posture.direction if posture.direction is not None else np.array([1.0, 0.0, 0.0])
+                command = follower.command(posture.centroid_mm, axis, t)
+                decision = safety.update(t, True, command.field_T, command.force_N, None)
+                position = posture.centroid_mm
+            else:
+                decision = safety.update(t, False, None, None, None)
+                position = np.zeros(3)
+            field_norm = float(np.linalg.norm(decision.field_T))
+            moment = moment_am2 * (decision.field_T / field_norm if field_norm > 0 else np.array([0.0, 0.0, 1.0]))
+            allocation = allocator.allocate(position, decision.field_T, decision.force_N, moment, commanded, dt)
+            allocated = perf()
+            samples["roi"].add("control_allocation", (allocated - mark) * 1e6)
+            if amplifier is not None and port is not None:
+                result = amplifier.set_currents(allocation.currents_a)
+                acked = perf()
+                commanded = result.commanded_a
+                samples["roi"].add("amplifier_write", (port.written_at - allocated) * 1e6)
+                samples["roi"].add("amplifier_ack", (acked - allocated) * 1e6)
+                if n > 0 and mode == "roi":
+                    loop_us.append((port.written_at - began) * 1e6)
+            else:
+                commanded = allocation.currents_a
+                if n > 0 and mode == "roi":
+                    loop_us.append((allocated - began) * 1e6)
+            # -- cold: full-frame detection from scratch
+            cold.reset()
+            began = perf()
+            posture = cold.process(image_p, image_q, frame=n, t=t)
+            samples["full"].add("recognition", (perf() - began) * 1e6)
+            for stage in RECOGNITION_STAGES:
+                samples["full"].add(stage, posture.timings_us.get(stage, 0.0))
+            tracking["lost_full"] += not posture.ok
+            # -- the baseline and the memory floor, on the same pair
+            if baseline is None:
+                baseline = OpenCvBaseline(calibration, OpenCvBaseline.threshold_for(image_p))
+                buffers = (np.empty_like(image_p), np.empty_like(image_q))
+            began = perf()
+            baseline.process(image_p, image_q)
+            baseline_us.append((perf() - began) * 1e6)
+            assert buffers is not None
+            began = perf()
+            np.copyto(buffers[0], image_p)
+            np.copyto(buffers[1], image_q)
+            floor_us.append((perf() - began) * 1e6)
+            if progress is not None:
+                progress(f"frame {n + 1}/{frames}")
+    finally:
+        if amplifier is not None:
+            amplifier.shutdown()
+    stages = {mode: {stage: percentiles(samples[mode].values.get(stage, [])) for stage in STAGES}
+              for mode in MODES}
+    # Control, allocation and the amplifier command do not depend on how the frame was searched.
+    for stage in ("control_allocation", "amplifier_write", "amplifier_ack"):
+        stages["full"][stage] = stages["roi"][stage]
+    config = {"frames": tracking["frames"], "image_size": list(image_p.shape[::-1]) if tracking["frames"] else None,
+              "fps": source.fps, "amplifier": amplifier_url is not None, "estimator": settings.estimator,
+              "machine": machine()}
+    return BenchResult(config=config, stages=stages, baseline_us=percentiles(baseline_us),
+                       memory_floor_us=percentiles(floor_us), loop_us=percentiles(loop_us), tracking=tracking)
+
+
+def run_simulation(seconds: float, image_size: tuple[int, int] | None = None,
+                   progress: Callable[[str], None] | None = None) -> dict[str, Any]:
+    """The closed loop of ``config/sim.yaml`` (every device a loopback fake) for ``seconds`` of simulated time.
+
+    Returns frame pairs per second of wall time (the harness renders each pair and steps the world
+    too, so this is the whole simulated bench's rate, not the appliance's), the orchestrator's own
+    per-step figures (recognition, control, allocation, amplifier round trip; us) and its measured
+    latency from a pair on the host to the command written (which includes the pair's wait in the
+    grabbers' queue while the harness steps the world).
+    """
+    from appliance.config_io import config_path, read_yaml
+    from appliance.session_config import session_from_mapping
+    from appliance.simulation import Simulation
+
+    source = config_path("sim.yaml")
+    data = read_yaml(source)
+    data.setdefault("recording", {})["enabled"] = False
+    data["simulation"] = {**data.get("simulation", {}), "max_seconds": max(seconds, 0.1)}
+    if image_size is not None:
+        data.setdefault("imaging", {})["image_size"] = list(image_size)
+    session = session_from_mapping(data, source)
+    steps: dict[str, list[float]] = {}
+
+    def on_step(report: Any, truth: Any) -> None:
+        for name in ("recognition", "control", "allocation", "amplifier", "total"):
+            if name in report.stages_us:
+                steps.setdefault(name, []).append(report.stages_us[name])
+        if progress is not None:
+            progress(f"simulation: t {report.t_s:.2f} s, frame {report.frame}")
+
+    with Simulation(session) as sim:
+        result = sim.run(seconds, on_step=on_step)
+        stats = sim.orchestrator.stats
+    return {"image_size": list(session.config.imaging.image_size), "simulated_s": result.sim_s,
+            "wall_s": result.wall_s, "pairs": stats.pairs, "tracked": stats.tracked,
+            "pairs_per_s": stats.pairs / result.wall_s if result.wall_s > 0 else None,
+            "stop_reason": result.stop_reason,
+            "step_us": {name: percentiles(values) for name, values in steps.items()},
+            "latency_write_us": percentiles([1e6 * v for v in stats.latency_write_s]),
+            "latency_ack_us": percentiles([1e6 * v for v in stats.latency_ack_s])}
+
+
+def _f(value: float | None, spec: str = "9.1f") -> str:
+    width = int(spec.split(".")[0]) if spec[0].isdigit() else 9
+    return f"{'-':>{width}}" if value is None else format(value, spec)
+
+
+def format_table(result: BenchResult) -> str:
+    """The benchmark's table (plain text, one figure per cell; microseconds unless named)."""
+    cfg = result.config
+    size = cfg.get("image_size") or ["?", "?"]
+    m = cfg["machine"]
+    lines = [f"appliance bench: {cfg['frames']} biplane pairs of {size[0]}x{size[1]} 16-bit, estimator "
+             f"{cfg['estimator']}; {m['cores']} cores, python {m['python']}, numpy {m['numpy']}, opencv "
+             f"{m['opencv']} ({m['opencv_threads']} threads), load {m['load_1min']}",
+             f"{'stage (us)':<22} {'ROI p50':>9} {'ROI p99':>9} {'full p50':>9} {'full p99':>9}"]
+    lines.append("-" * len(lines[-1]))
+    for stage in STAGES:
+        roi, full = result.stages["roi"][stage], result.stages["full"][stage]
+        label = {"recognition": "= recognition (pair)", "control_allocation": "control + allocation",
+                 "amplifier_write": "amplifier: written", "amplifier_ack": "amplifier: acked"}.get(stage, stage)
+        if stage in ("control_allocation",):
+            lines.append("")
+        lines.append(f"{label:<22} {_f(roi['p50'])} {_f(roi['p99'])} {_f(full['p50'])} {_f(full['p99'])}")
+    lines.append("")
+    b, fl, lp = result.baseline_us, result.memory_floor_us, result.loop_us
+    lines.append(f"{'OpenCV baseline (pair)':<22} {_f(b['p50'])} {_f(b['p99'])}   ours (ROI) is "
+                 f"{_f(result.baseline_ratio, '.1f')}x faster (p50)")
+    lines.append(f"{'memory floor (copyto)':<22} {_f(fl['p50'])} {_f(fl['p99'])}   ours (full) is "
+                 f"{_f(result.cold_floor_ratio, '.2f')}x the floor (p50)")
+    lines.append(f"{'loop: frame->written':<22} {_f(lp['p50'])} {_f(lp['p99'])}   (ROI recognition + control + "
+                 f"allocation + amplifier write{'' if cfg['amplifier'] else '; no amplifier'})")
+    fps = result.fps()
+    lines.append("")
+    lines.append(f"pairs/s: recognition ROI {_f(fps['recognition_roi'], '.0f')}, full {_f(fps['recognition_full'], '.0f')}; "
+                 f"in-process loop {_f(fps['loop_in_process'], '.0f')}; closed loop in simulation "
+                 f"{_f(fps['closed_loop_simulation'], '.1f')}")
+    sim = result.simulation
+    if sim is not None:
+        st = sim["step_us"]
+        rec, tot = st.get("recognition", {}), st.get("total", {})
+        lines.append(f"simulation ({sim['image_size'][0]}x{sim['image_size'][1]}, {sim['pairs']} pairs, "
+                     f"{sim['simulated_s']:.2f} s simulated in {sim['wall_s']:.2f} s wall): orchestrator step "
+                     f"p50 {_f(tot.get('p50'), '.0f')} p99 {_f(tot.get('p99'), '.0f')} us, recognition p50 "
+                     f"{_f(rec.get('p50'), '.0f')} p99 {_f(rec.get('p99'), '.0f')} us; pair on host -> written "
+                     f"p50 {_f(sim['latency_write_us']['p50'], '.0f')} p99 {_f(sim['latency_write_us']['p99'], '.0f')} us")
+    t = result.tracking
+    lines.append(f"tracking: {t['roi']} ROI frames, {t['fallback_full']} fell back to full frame, lost "
+                 f"{t['lost_roi']} (steady) / {t['lost_full']} (cold) of {t['frames']}")
+    lines.append("targets: " + ", ".join(
+        f"{name} {_f(v['value'], '.1f')} ({'<=' if name not in ('baseline_ratio',) else '>='} {v['target']:g}: "
+        f"{'met' if v['met'] else 'NOT met' if v['met'] is not None else 'n/a'})"
+        for name, v in result.targets().items()))
+    lines.extend(f"note: {note}" for note in result.notes)
+    return "\n".join(lines)
