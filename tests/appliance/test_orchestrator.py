@@ -1,0 +1,122 @@
+"""The frame loop's own behaviours on the simulated bench: start-up checks, listeners, operator stop.
+
+The devices are the loopback fakes over real transports (small images, a fraction of a second of
+simulated time per test); the fault behaviours are in ``test_simulation.py``.
+"""
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from appliance.config_io import config_path, read_yaml
+from appliance.device_factory import perturbed_calibration
+from appliance.errors import DeviceFaultError, InputDataError
+from appliance.orchestrator import FrameReport, ListenerError, LoopListener, LoopSettings
+from appliance.session_config import Session, session_from_mapping
+from appliance.simulation import ZERO_CURRENT_A, Simulation
+from drivers.loopback.xray_render import biplane_views
+
+
+def small_session(**sections: dict[str, Any]) -> Session:
+    data = copy.deepcopy(read_yaml(config_path("sim.yaml")))
+    data["imaging"]["image_size"] = [256, 224]
+    data["devices"]["ots"] = {"kind": "none"}
+    data["loop"] = {"pair_timeout_ms": 150, "frame_timeout_ms": 250}
+    data["simulation"] = {"seed": 0, "settle_ms": 300}
+    for key, value in sections.items():
+        data[key] = {**data.get(key, {}), **value}
+    return session_from_mapping(data, config_path("sim.yaml"))
+
+
+def coils_are_off(sim: Simulation) -> bool:
+    snapshot = sim.bench.amplifier_fake.snapshot()
+    return not snapshot.output_on and float(np.max(np.abs(snapshot.measured_a))) < ZERO_CURRENT_A
+
+
+class Collector(LoopListener):
+    def __init__(self, fail_at: int | None = None) -> None:
+        self.frames: list[FrameReport] = []
+        self.started: list[dict[str, Any]] = []
+        self.stopped: list[dict[str, Any]] = []
+        self.status: list[str] = []
+        self.fail_at = fail_at
+
+    def on_start(self, t_s: float, info: dict[str, Any]) -> None:
+        self.started.append(info)
+
+    def on_frame(self, report: FrameReport) -> None:
+        self.frames.append(report)
+        if self.fail_at is not None and len(self.frames) == self.fail_at:
+            raise OSError("disk full")
+
+    def on_status(self, t_s: float, device: str, status: dict[str, Any]) -> None:
+        self.status.append(device)
+
+    def on_stop(self, t_s: float, summary: dict[str, Any]) -> None:
+        self.stopped.append(summary)
+
+
+def test_listeners_see_start_frames_status_and_stop() -> None:
+    collector = Collector()
+    with Simulation(small_session(), [collector]) as sim:
+        result = sim.run(0.5)
+        assert coils_are_off(sim)
+    assert collector.started and "amplifier" in collector.started[0]["devices"]
+    assert len(collector.frames) == len(result.reports) >= 14
+    assert [r.frame for r in collector.frames] == sorted({r.frame for r in collector.frames})
+    assert {"amplifier", "xray"} <= set(collector.status)
+    assert collector.stopped == [{"reason": None, "safe": True, "steps": len(result.reports),
+                                  "pairs": len(result.reports), "tracked": sim.orchestrator.stats.tracked}]
+    report = collector.frames[-1]
+    assert report.measured_a is not None and report.commanded_a.shape == (8,)
+    assert {"wait_pair", "recognition", "control", "allocation", "amplifier", "total"} <= set(report.stages_us)
+    assert report.latency_write_s is not None and 0.0 < report.latency_write_s <= report.latency_ack_s
+
+
+def test_a_failing_listener_stops_the_loop_and_the_coils_still_go_to_zero() -> None:
+    collector = Collector(fail_at=5)
+    with Simulation(small_session(), [collector]) as sim:
+        with pytest.raises(ListenerError, match="Collector failed in on_frame: disk full"):
+            sim.run(1.0)
+        assert not sim.orchestrator.running
+        assert coils_are_off(sim)
+    assert len(collector.frames) == 5          # no step after the failure
+
+
+def test_operator_stop_latches_and_switches_the_output_off() -> None:
+    with Simulation(small_session()) as sim:
+        def stop_after_ten(report: FrameReport, truth: Any) -> None:
+            if report.index == 10:
+                sim.orchestrator.request_stop("operator pressed stop")
+        result = sim.run(1.0, on_step=stop_after_ten)
+        assert result.stop_reason == "operator pressed stop"
+        assert result.reports[-1].stopped and result.reports[-1].mode == "stop"
+        assert len(result.reports) == 11
+        assert coils_are_off(sim)
+        assert sim.orchestrator.safety.mode.value == "stop"
+
+
+def test_start_up_refuses_an_amplifier_with_a_latched_fault() -> None:
+    with Simulation(small_session()) as sim:
+        sim.bench.press_estop()
+        with pytest.raises(DeviceFaultError, match=r"loopback amplifier on /dev/pts/\d+ reports latched faults"):
+            sim.run(0.2)
+        assert not sim.bench.amplifier_fake.snapshot().output_on   # never enabled
+
+
+def test_start_up_refuses_frames_that_do_not_fit_the_calibration(tmp_path: Path) -> None:
+    wrong = perturbed_calibration(biplane_views(image_size=(320, 280)), 0.0, 0.0, 0)
+    wrong.save(tmp_path / "calibration.yaml")
+    session = small_session(calibration={"source": "file", "file": str(tmp_path / "calibration.yaml")})
+    with Simulation(session) as sim, pytest.raises(InputDataError, match="256x224 px images but the calibration "
+                                                                         "is for 320x280"):
+        sim.run(0.2)
+
+
+def test_loop_settings_come_from_the_session() -> None:
+    settings = LoopSettings.from_config(small_session(loop={"frame_timeout_ms": 400}).config)
+    assert settings.fps == 30.0 and settings.frame_timeout_s == 0.4 and settings.pair_timeout_s == 0.15
