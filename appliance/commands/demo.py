@@ -9,7 +9,8 @@ quantum noise and detector blur. The robot glides along the vessel's centreline 
 Written to the output folder (a biplane frame folder, architecture.md contract):
 ``p/``, ``q/`` 16-bit frames, ``calibration.yaml`` (the *true* views, saved with
 :meth:`Calibration.save`), ``truth.jsonl`` (the true pose per frame) and ``postures.jsonl`` (what
-``appliance track`` makes of it). The summary compares the two: centroid, axis and tip errors over
+``appliance track`` makes of it). The calibration's metadata carries the simulated detector's dark
+level (``detector.dark_level``), which ``appliance track`` then subtracts by default. The summary compares the two: centroid, axis and tip errors over
 the frames the tracker reported, plus how many it flagged ambiguous or lost, and any *silent*
 failure (a frame neither ambiguous nor lost whose axis is more than 5 degrees off, the issue's
 definition), which makes the exit status 1.
@@ -27,6 +28,7 @@ from typing import Any
 
 import numpy as np
 from appliance.commands._common import prepare_frame_folder
+from appliance.commands.track import non_negative_float
 
 NAME = "demo"
 HELP = "render a biplane scene of a robot moving through a vessel, track it and compare with the truth"
@@ -62,6 +64,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--vessel-radius", metavar="MM", type=float,
                         help=f"lumen radius of the vessel phantom (default {DEFAULT_VESSEL_RADIUS_MM:g} mm, "
                              "or 0.8 x the robot's diameter if larger)")
+    parser.add_argument("--dark-level", type=non_negative_float, metavar="DN",
+                        help="detector dark level the tracker subtracts (default: the calibration's "
+                             "metadata.detector.dark_level, which the demo writes from its simulated detector)")
 
 
 @dataclass(frozen=True)
@@ -101,7 +106,8 @@ def render_scene(out: Path, robot_id: int, frames: int, seed: int,
     from appliance.robots import load_robots, select_robot
     from drivers.biplane_folder import write_frame
     from drivers.loopback.vessel import Vessel
-    from drivers.loopback.xray_render import BiplaneRenderer, RobotBody, RobotPose, VesselPhantom, biplane_views
+    from drivers.loopback.xray_render import (BiplaneRenderer, ImagingSettings, RobotBody, RobotPose, VesselPhantom,
+                                              biplane_views)
 
     robot = select_robot(load_robots(), robot_id)
     true_views = biplane_views()
@@ -113,12 +119,13 @@ def render_scene(out: Path, robot_id: int, frames: int, seed: int,
     vessel = Vessel(np.array(VESSEL_CONTROL_MM), vessel_radius)
     phantom = VesselPhantom(vessel.sample(1.0), vessel_radius, VESSEL_ATTENUATION_PER_MM)
     body = RobotBody(robot.length_mm, robot.diameter_mm, robot.tip_angle_deg, robot.attenuation_per_mm)
-    renderer = BiplaneRenderer(true_views, body, vessel=phantom, seed=seed)
+    imaging = ImagingSettings()
+    renderer = BiplaneRenderer(true_views, body, vessel=phantom, settings=imaging, seed=seed)
 
     views = {name: View(name, v.K, v.dist, v.R, v.t, v.image_size) for name, v in true_views.items()}
     Calibration.from_views(views["p"], views["q"], {
         "source": "true views of the simulated biplane system (appliance demo)",
-        "robot": robot_id, "seed": seed}).save(out / "calibration.yaml")
+        "robot": robot_id, "seed": seed, "detector": {"dark_level": float(imaging.dark_level)}}).save(out / "calibration.yaml")
 
     # Stay a robot length away from the vessel's ends so the whole body is inside the phantom.
     margin = min(robot.length_mm, 0.3 * vessel.length_mm)
@@ -204,8 +211,8 @@ def _summary(out: Path, scene: DemoScene, result: dict[str, Any], seconds: dict[
 def run(args: argparse.Namespace) -> int:
     import time
 
-    from appliance.commands.track import load_inputs, track_folder
-    from appliance.recognition import PostureTracker
+    from appliance.commands.track import dark_level_of, load_inputs, track_folder
+    from appliance.recognition import PostureTracker, RecognitionSettings
     from appliance.robots import load_robots, select_robot
 
     select_robot(load_robots(), args.robot)  # a bad --robot fails before any folder is made
@@ -214,7 +221,7 @@ def run(args: argparse.Namespace) -> int:
     scene = render_scene(out, args.robot, args.frames, args.seed, args.vessel_radius)
     rendered = time.monotonic()
     frames, calibration = load_inputs(out, None)
-    tracker = PostureTracker(calibration)
+    tracker = PostureTracker(calibration, RecognitionSettings(dark_level=dark_level_of(calibration, args.dark_level)))
     with (out / "postures.jsonl").open("w", encoding="utf-8") as stream:
         track_folder(frames, tracker, stream, fps=30.0)
     tracked = time.monotonic()  # (track_folder ended the progress line)

@@ -7,6 +7,14 @@ invalid calibration, or an empty folder ends the command with exit status 2 and 
 file (and the frame number); the records written before it stay valid JSON Lines.
 
 Frame folders carry no timestamps, so ``t`` is the frame number divided by ``--fps``.
+
+Attenuation is a ratio of photon counts, so the detector's dark level (its gray level with no X-rays)
+must come off every pixel first; left in, it compresses the robot's dense parts and biases the
+weighted moments. It is a property of the detector, measured by its dark-frame calibration, so it
+travels with the calibration file as ``metadata.detector.dark_level`` (``appliance demo`` writes it);
+``--dark-level`` overrides it, and without either it is 0. It is not estimated from the image: the
+darkest pixels of a frame are the robot's, not the offset, and the offset is not observable from an
+exposed frame without a model of the field.
 """
 from __future__ import annotations
 
@@ -33,6 +41,37 @@ log = logging.getLogger(__name__)
 DEFAULT_FPS = 30.0
 
 
+def non_negative_float(text: str) -> float:
+    """argparse type: a finite number >= 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not (value >= 0.0 and value != float("inf")):
+        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {text}")
+    return value
+
+
+def dark_level_of(calibration: Calibration, override: float | None = None) -> float:
+    """The detector's dark level (gray levels): ``override`` if given, else the calibration file's
+    ``metadata.detector.dark_level``, else 0. A present but invalid value is a CalibrationError."""
+    from appliance.errors import CalibrationError
+
+    if override is not None:
+        return float(override)
+    detector = calibration.metadata.get("detector")
+    if detector is None:
+        return 0.0
+    where = calibration.metadata.get("loaded_from", "calibration")
+    value = detector.get("dark_level") if isinstance(detector, dict) else None
+    if not isinstance(detector, dict):
+        raise CalibrationError(f"{where}: metadata.detector: expected a mapping, got {detector!r}")
+    if value is None:
+        return 0.0
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= float(value) < float("inf"):
+        raise CalibrationError(f"{where}: metadata.detector.dark_level: expected a finite number >= 0 "
+                               f"(gray levels), got {value!r}")
+    return float(value)
 
 
 
@@ -50,6 +89,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="feature estimator (default: the recognition settings' default, 'weighted')")
     parser.add_argument("--fps", type=positive_float, default=DEFAULT_FPS, metavar="HZ",
                         help=f"frame rate for the records' t = frame / fps (default {DEFAULT_FPS:g})")
+    parser.add_argument("--dark-level", type=non_negative_float, metavar="DN",
+                        help="detector gray level with no X-rays, subtracted before taking attenuation "
+                             "(default: the calibration's metadata.detector.dark_level, else 0)")
 
 
 def load_inputs(folder: Path, calibration: Path | None) -> tuple[BiplaneFolder, Calibration]:
@@ -129,12 +171,14 @@ def run(args: argparse.Namespace) -> int:
     frames, calibration = load_inputs(args.folder, args.calibration)
     from appliance.recognition import PostureTracker, RecognitionSettings
 
-    settings = RecognitionSettings(estimator=args.estimator) if args.estimator else RecognitionSettings()
+    dark_level = dark_level_of(calibration, args.dark_level)
+    settings = (RecognitionSettings(estimator=args.estimator, dark_level=dark_level) if args.estimator
+                else RecognitionSettings(dark_level=dark_level))
     extra = {}
     if args.robot is not None:
         extra = {"robot": args.robot, "nominal_length_mm": _nominal_length(args.robot)}
     tracker = PostureTracker(calibration, settings=settings)
-    log.info("tracking %d frame pairs of %s", len(frames), frames.root)
+    log.info("tracking %d frame pairs of %s (dark level %g)", len(frames), frames.root, dark_level)
     try:
         with output_stream(args.out, "posture records") as out:
             counts = track_folder(frames, tracker, out, fps=args.fps, extra=extra)

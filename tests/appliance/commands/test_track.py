@@ -228,3 +228,54 @@ def test_progress_only_on_a_terminal(rendered: tuple[Path, list[dict[str, object
     assert code == 0 and len(out.splitlines()) == 4
     assert "\rtrack: frame 13 (4/4)" in err and "tracked 4 frame pairs" in err
     assert "track:" not in out  # the records stay clean
+
+
+# -- detector dark level ----------------------------------------------------------------------------
+def test_dark_level_from_calibration_metadata_and_override(tmp_path: Path) -> None:
+    from appliance.commands.track import dark_level_of
+    from appliance.errors import CalibrationError
+
+    cal = _calibration()
+    assert dark_level_of(cal) == 0.0  # no metadata: no offset assumed
+    cal.metadata["detector"] = {"dark_level": 1000}
+    cal.save(tmp_path / "calibration.yaml")
+    loaded = Calibration.load(tmp_path / "calibration.yaml")
+    assert dark_level_of(loaded) == 1000.0
+    assert dark_level_of(loaded, 250.0) == 250.0  # --dark-level wins
+    loaded.metadata["detector"] = {"dark_level": -3}
+    with pytest.raises(CalibrationError, match=r"calibration.yaml: metadata.detector.dark_level"):
+        dark_level_of(loaded)
+    loaded.metadata["detector"] = "flat panel"
+    with pytest.raises(CalibrationError, match=r"metadata.detector: expected a mapping"):
+        dark_level_of(loaded)
+
+
+def test_dark_level_reaches_the_tracker(rendered: tuple[Path, list[dict[str, object]]],
+                                        capsys: pytest.CaptureFixture[str],
+                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    import appliance.recognition as recognition
+
+    seen: list[float] = []
+    original = recognition.PostureTracker.__init__
+
+    def spy(self: object, calibration: Calibration, settings: object = None, **kw: object) -> None:
+        seen.append(getattr(settings, "dark_level", 0.0))
+        original(self, calibration, settings, **kw)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(recognition.PostureTracker, "__init__", spy)
+    assert _run(capsys, str(rendered[0]), "--dark-level", "1000")[0] == 0
+    assert _run(capsys, str(rendered[0]))[0] == 0
+    assert seen == [1000.0, 0.0]  # the rendered folder's calibration has no detector metadata
+    with pytest.raises(SystemExit) as info:
+        main(["track", str(rendered[0]), "--dark-level", "-5"])
+    assert info.value.code == 2 and "--dark-level: must be a finite number >= 0" in capsys.readouterr().err
+
+
+def test_demo_saves_the_detector_dark_level(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from drivers.loopback.xray_render import ImagingSettings
+
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out), "--frames", "2", "--robot", "4"]) in (0, 1)
+    capsys.readouterr()
+    cal = Calibration.load(out / "calibration.yaml")
+    assert cal.metadata["detector"]["dark_level"] == ImagingSettings().dark_level
