@@ -39,7 +39,7 @@ QUANTITIES = (("position_mm", "position error", "mm"), ("axis_deg", "axis orient
 #: What the seed paper reports (Table 1, Fig. 4), drawn as a band on the box plots.
 PAPER_RANGE = {"position_mm": (0.2, 0.4), "axis_deg": (1.0, 2.0)}
 TABLE_COLUMNS = ("robot", "length_mm", "diameter_mm", "tip_angle_deg", "material", "pixels", "position_mm",
-                 "axis_deg", "tip_mm", "processing_ms", "recognised", "samples")
+                 "axis_deg", "tip_mm", "processing_ms", "recognised", "ambiguous", "samples")
 
 
 def _values(samples: Sequence[Sample], key: str, ok_only: bool = True) -> list[float | None]:
@@ -71,13 +71,14 @@ def table_rows(result: ValidationResult) -> list[dict[str, str]]:
             "pixels": mean_sd_text(stats["pixels"], 0), "position_mm": mean_sd_text(stats["position_mm"], 3),
             "axis_deg": mean_sd_text(stats["axis_deg"], 2), "tip_mm": mean_sd_text(stats["tip_mean_mm"], 3),
             "processing_ms": mean_sd_text(stats["processing_ms"], 1),
-            "recognised": f"{counts['recognised']}/{counts['samples']}", "samples": str(counts["samples"])})
+            "recognised": f"{counts['recognised']}/{counts['samples']}", "ambiguous": str(counts["ambiguous"]),
+            "samples": str(counts["samples"])})
     return rows
 
 
 def _markdown(result: ValidationResult, rows: list[dict[str, str]], summary: dict[str, Any]) -> str:
     header = ("| # | L (mm) | D (mm) | tip (deg) | material | pixels in the cloud | position error (mm) | "
-              "axis error (deg) | tip error (mm) | processing (ms) | recognised |")
+              "axis error (deg) | tip error (mm) | processing (ms) | recognised | ambiguous |")
     lines = ["# Validation against the optical tracker", "",
              f"Session `{result.session}` ({'simulation' if result.simulation else 'bench'}; lab: {result.lab}), "
              f"started {result.started}, {result.wall_s:.0f} s.", "",
@@ -85,12 +86,13 @@ def _markdown(result: ValidationResult, rows: list[dict[str, str]], summary: dic
              f"biplane pairs per posture"
              + ("" if result.plan.meets_protocol else f" (fewer than the protocol's {PROTOCOL_SAMPLES})") + ".",
              "Errors are mean ± SD over recognised pairs against the tracker's reference mapped into the X-ray frame;"
-             " pixels: mean of both views; processing: recognition of one pair on this host.", "",
-             header, "|" + "---|" * 11]
+             " pixels: mean of both views; processing: recognition of one pair on this host; ambiguous: pairs whose"
+             " axis lies near an epipolar plane (the mirror solution is resolved from the previous frames).", "",
+             header, "|" + "---|" * 12]
     for r in rows:
         lines.append(f"| {r['robot']} | {r['length_mm']} | {r['diameter_mm']} | {r['tip_angle_deg']} | {r['material']} "
                      f"| {r['pixels']} | {r['position_mm']} | {r['axis_deg']} | {r['tip_mm']} | {r['processing_ms']} "
-                     f"| {r['recognised']} |")
+                     f"| {r['recognised']} | {r['ambiguous']} |")
     reg = summary["registration"]
     lines += ["", f"Registration X-ray -> OTS: {result.registration_source}."]
     if "fre_rms_mm" in reg:

@@ -86,6 +86,8 @@ class Sample:
     pixels_p: int | None
     pixels_q: int | None
     processing_ms: float
+    #: Angle between the two views' axis planes (deg): near 0 the axis lies in an epipolar plane (ambiguous).
+    plane_angle_deg: float | None
     reason: str | None
     centroid_mm: list[float] | None
     direction: list[float] | None
@@ -176,7 +178,7 @@ def measure_posture(robot: RobotSpec, posture: int, plan: Plan, pairs: PairFeed,
             tip_mean_mm=errors.get("tip_mean_mm"),
             pixels_p=views["p"].pixel_count if views.get("p") is not None else None,
             pixels_q=views["q"].pixel_count if views.get("q") is not None else None,
-            processing_ms=processing_ms, reason=reason,
+            processing_ms=processing_ms, plane_angle_deg=recognised.plane_angle_deg, reason=reason,
             centroid_mm=_vector(recognised.centroid_mm), direction=_vector(recognised.direction),
             reference_centroid_mm=_vector(reference.centroid_mm) if reference else None,
             reference_direction=_vector(reference.direction) if reference else None,
