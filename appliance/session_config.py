@@ -181,7 +181,7 @@ class SimulationSection(StrictModel):
 class RecordingSection(StrictModel):
     enabled: bool = True
     #: Folder for recordings (relative: to the working directory); one MCAP file per session.
-    folder: str = "recordings"
+    folder: str = "runs"
     #: Keep every n-th biplane pair's images (1: all); postures, commands and currents are always kept.
     frames_every: int = Field(default=10, ge=1)
 

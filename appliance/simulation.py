@@ -29,12 +29,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from appliance.control import ActuationModel, CurrentAllocator, PathFollower, SafetySupervisor, load_coils, load_path
-from appliance.device_factory import Devices, SimBench, open_devices
+from appliance.device_factory import Devices, open_devices
 from appliance.errors import ConfigError
 from appliance.orchestrator import FrameReport, LoopListener, LoopSettings, Orchestrator
 from appliance.recognition import PostureTracker
 from appliance.robots import load_robots, select_robot
 from appliance.session_config import Session
+from appliance.sim_bench import SimBench
 
 log = logging.getLogger(__name__)
 

@@ -13,12 +13,11 @@ from scipy.spatial.transform import Rotation
 
 from appliance.config_io import config_path, read_yaml
 from appliance.control import load_coils
-from appliance.device_factory import (
-    PoseHistory, SimClock, amplifier_limits, open_devices, perturbed_calibration, turned_views,
-)
+from appliance.device_factory import amplifier_limits, open_devices, perturbed_calibration, turned_views
 from appliance.errors import DeviceNotFoundError
 from appliance.robots import load_robots
 from appliance.session_config import AmplifierDevice, session_from_mapping
+from appliance.sim_bench import PoseHistory, SimClock
 from drivers.amplifier import Amplifier
 from drivers.loopback.xray_render import biplane_views
 from drivers.usb_grabber import UsbGrabber
