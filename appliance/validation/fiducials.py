@@ -27,9 +27,18 @@ from scipy.optimize import linear_sum_assignment
 
 from appliance.errors import CalibrationError
 from appliance.geometry import (
-    Calibration, epipolar_distance_px, fundamental_matrix, reprojection_error_px, triangulate,
+    Calibration,
+    epipolar_distance_px,
+    fundamental_matrix,
+    reprojection_error_px,
+    triangulate,
 )
-from appliance.registration import PivotCalibration, Registration, pivot_calibration, register_points
+from appliance.registration import (
+    PivotCalibration,
+    Registration,
+    pivot_calibration,
+    register_points,
+)
 from appliance.validation.lab import Lab, PairFeed, ToolFeed
 from appliance.xray_calibration.beads import detect_beads
 
@@ -63,7 +72,7 @@ class FiducialRegistration:
         data = self.registration.to_dict(targets_mm)
         data["fre_mm"] = np.round(self.registration.fre_mm, 4).tolist()
         data["pivot"] = {"tip_offset_mm": np.round(self.pivot.tip_offset_mm, 3).tolist(),
-                         "rms_mm": round(self.pivot.rms_mm, 4), "poses": int(len(self.pivot.residual_mm))}
+                         "rms_mm": round(self.pivot.rms_mm, 4), "poses": len(self.pivot.residual_mm)}
         data["bead_reprojection_px"] = np.round(self.bead_reprojection_px, 3).tolist()
         return data
 

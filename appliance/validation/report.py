@@ -8,7 +8,9 @@
 - ``boxplots.png``: Fig. 4-like box plots per robot of the position, axis and tip errors (median, quartiles,
   whiskers at 1.5 IQR, outliers), with the paper's reported ranges shaded;
 - ``samples.csv``: every sample with its frame numbers, flags, errors, pixel counts and time;
-- ``summary.json``: the run, the registration, and per robot and per posture the full statistics.
+- ``summary.json``: the run, the registration, and per robot and per posture the full statistics;
+- ``calibration_registered.yaml``: when the registration was measured, the session's calibration with it
+  (``metadata.ots_registration``), for the next session's ``calibration: {source: file, file: ...}``.
 
 Statistics cover recognised samples only; lost and ambiguous samples are counted, never filled in.
 """
@@ -79,15 +81,15 @@ def table_rows(result: ValidationResult) -> list[dict[str, str]]:
 def _markdown(result: ValidationResult, rows: list[dict[str, str]], summary: dict[str, Any]) -> str:
     header = ("| # | L (mm) | D (mm) | tip (deg) | material | pixels in the cloud | position error (mm) | "
               "axis error (deg) | tip error (mm) | processing (ms) | recognised | ambiguous |")
+    shortfall = "" if result.plan.meets_protocol else f" (fewer than the protocol's {PROTOCOL_SAMPLES})"
     lines = ["# Validation against the optical tracker", "",
-             f"Session `{result.session}` ({'simulation' if result.simulation else 'bench'}; lab: {result.lab}), "
-             f"started {result.started}, {result.wall_s:.0f} s.", "",
-             f"Run: {len(result.runs)} robot(s) x {result.plan.postures} posture(s) x {result.plan.samples} "
-             f"biplane pairs per posture"
-             + ("" if result.plan.meets_protocol else f" (fewer than the protocol's {PROTOCOL_SAMPLES})") + ".",
-             "Errors are mean ± SD over recognised pairs against the tracker's reference mapped into the X-ray frame;"
-             " pixels: mean of both views; processing: recognition of one pair on this host; ambiguous: pairs whose"
-             " axis lies near an epipolar plane (the mirror solution is resolved from the previous frames).", "",
+             (f"Session `{result.session}` ({'simulation' if result.simulation else 'bench'}; lab: {result.lab}), "
+              f"started {result.started}, {result.wall_s:.0f} s."), "",
+             (f"Run: {len(result.runs)} robot(s) x {result.plan.postures} posture(s) x {result.plan.samples} "
+              f"biplane pairs per posture{shortfall}."),
+             ("Errors are mean ± SD over recognised pairs against the tracker's reference mapped into the X-ray frame;"
+              " pixels: mean of both views; processing: recognition of one pair on this host; ambiguous: pairs whose"
+              " axis lies near an epipolar plane (the mirror solution is resolved from the previous frames)."), "",
              header, "|" + "---|" * 12]
     for r in rows:
         lines.append(f"| {r['robot']} | {r['length_mm']} | {r['diameter_mm']} | {r['tip_angle_deg']} | {r['material']} "
@@ -205,6 +207,13 @@ def write_report(folder: str | Path, result: ValidationResult) -> dict[str, Path
     paths["table_md"].write_text(_markdown(result, rows, summary), encoding="utf-8")
     _boxplots(result, paths["boxplots"])
     _samples_csv(result.samples, paths["samples"])
+    if result.fiducials is not None and result.calibration is not None:
+        # The measured registration saved with the calibration, so the next session can reuse it.
+        from appliance.registration import attach_registration
+        targets = [c for run in result.runs for c in run.reference_centroids_mm if all(map(math.isfinite, c))]
+        registered = attach_registration(result.calibration, result.fiducials.registration,
+                                         targets=np.array(targets) if targets else None)
+        paths["calibration"] = registered.save(out / "calibration_registered.yaml")
     summary["files"] = {key: str(path) for key, path in paths.items()}
     paths["summary"].write_text(json.dumps(summary, indent=2, allow_nan=False), encoding="utf-8")
     log.info("validation report written to %s", out)

@@ -31,10 +31,19 @@ from appliance.recognition.posture import Posture
 from appliance.registration import RigidTransform, registration_from_calibration
 from appliance.robots import RobotSpec
 from appliance.session_config import Session
-from appliance.validation.fiducials import FiducialRegistration, FiducialSettings, register_with_fiducials
+from appliance.validation.fiducials import (
+    FiducialRegistration,
+    FiducialSettings,
+    register_with_fiducials,
+)
 from appliance.validation.lab import Lab, PairFeed, ToolFeed, load_extra_tool
 from appliance.validation.reference import ReferenceMapper, RobotPose
-from appliance.validation.statistics import axis_angle_deg, direction_angle_deg, position_error_mm, tip_errors_mm
+from appliance.validation.statistics import (
+    axis_angle_deg,
+    direction_angle_deg,
+    position_error_mm,
+    tip_errors_mm,
+)
 
 log = logging.getLogger(__name__)
 
@@ -52,7 +61,7 @@ class Plan:
     postures: int = 3
     samples: int = PROTOCOL_SAMPLES
     settle_frames: int = 6
-    fiducials: FiducialSettings = FiducialSettings()
+    fiducials: FiducialSettings = field(default_factory=FiducialSettings)
 
     def __post_init__(self) -> None:
         if self.postures < 1:
@@ -127,6 +136,8 @@ class ValidationResult:
     started: str
     wall_s: float = 0.0
     notes: list[str] = field(default_factory=list)
+    #: The appliance's X-ray calibration the session ran with (the registration belongs with it).
+    calibration: Any = None
 
     @property
     def samples(self) -> list[Sample]:
@@ -204,13 +215,14 @@ def run_validation(session: Session, robots: Sequence[RobotSpec], plan: Plan, la
                           f"(kind: serial or loopback), got kind: none")
     if not plan.meets_protocol:
         progress(f"note: {plan.samples} samples per posture is fewer than the protocol's {PROTOCOL_SAMPLES}")
-    started = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+    started = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
     wall_start = time.perf_counter()
     transform: RigidTransform | None = None
     source = ""
     fiducials: FiducialRegistration | None = None
     runs: list[RobotRun] = []
     lab_name = ""
+    calibration: Any = None
     for number, robot in enumerate(robots, start=1):
         head = f"[{number}/{len(robots)}] {_robot_line(robot)}"
         progress(f"{head}: opening the devices")
@@ -224,6 +236,7 @@ def run_validation(session: Session, robots: Sequence[RobotSpec], plan: Plan, la
             tools = ToolFeed(ots, lab)
             holder_handle = next(iter(ots.tools))
             if transform is None:
+                calibration = devices.calibration
                 saved = registration_from_calibration(devices.calibration)
                 if saved is not None:
                     transform, source = saved, "saved with the calibration (metadata.ots_registration)"
@@ -232,7 +245,7 @@ def run_validation(session: Session, robots: Sequence[RobotSpec], plan: Plan, la
                     rom, name = lab.pointer_rom()
                     pointer = load_extra_tool(ots, rom, name, config.devices.ots.mode, config.devices.ots.rate_hz)
                     fiducials = register_with_fiducials(lab, devices.calibration, pairs, tools, pointer, plan.fiducials,
-                                                        progress=lambda text: progress(f"{head}: {text}"))
+                                                        progress=lambda text, head=head: progress(f"{head}: {text}"))
                     transform, source = fiducials.registration.transform, "measured with the fiducial phantom"
             mapper = ReferenceMapper(transform, holder, robot)
             tracker = PostureTracker(devices.calibration)
@@ -255,4 +268,4 @@ def run_validation(session: Session, robots: Sequence[RobotSpec], plan: Plan, la
     assert transform is not None
     return ValidationResult(session=str(session.source), simulation=config.is_simulation, plan=plan, runs=runs,
                             registration_source=source, transform=transform, fiducials=fiducials, lab=lab_name,
-                            started=started, wall_s=time.perf_counter() - wall_start)
+                            started=started, wall_s=time.perf_counter() - wall_start, calibration=calibration)

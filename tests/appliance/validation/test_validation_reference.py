@@ -12,7 +12,12 @@ from appliance.geometry import Calibration, View
 from appliance.registration import RigidTransform
 from appliance.robots import load_robots
 from appliance.validation.fiducials import match_across_views, match_by_distances
-from appliance.validation.reference import ReferenceMapper, RobotPose, load_holder, transform_from_mapping
+from appliance.validation.reference import (
+    ReferenceMapper,
+    RobotPose,
+    load_holder,
+    transform_from_mapping,
+)
 
 LAYOUT = np.array([[0.0, 0.0, 0.0], [31.0, 6.0, -9.0], [-24.0, 13.0, 7.0], [9.0, -27.0, 14.0],
                    [-13.0, -21.0, -23.0], [19.0, 26.0, 21.0], [-33.0, -4.0, 26.0], [23.0, -14.0, -28.0]])

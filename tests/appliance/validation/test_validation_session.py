@@ -15,16 +15,27 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from scipy.spatial.transform import Rotation
 
 from appliance import cli
 from appliance.config_io import config_path, read_yaml
-from appliance.registration import RigidTransform
+from appliance.geometry import Calibration
+from appliance.registration import RigidTransform, registration_from_calibration
 from appliance.validation.lab import OperatorLab
 from appliance.validation.session import Sample
 
 ROBOTS = (1, 4)          # the default robot and the smallest one
 POSTURES, SAMPLES = 2, 3
+
+
+def _session_variant(path: Path, **sections: object) -> Path:
+    """The shipped simulation session with some top-level sections replaced (its file names stay resolvable:
+    a session looks beside itself, then in config/)."""
+    data = read_yaml(config_path("sim.yaml"))
+    data.update(sections)
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
 
 
 @pytest.fixture(scope="module")
@@ -44,6 +55,9 @@ def test_every_output_file_is_written(report: tuple[Path, str, int]) -> None:
         assert (out / name).is_file() and (out / name).stat().st_size > 0, name
         assert str(out / name) in text
     assert (out / "boxplots.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    saved = registration_from_calibration(Calibration.load(out / "calibration_registered.yaml"))
+    summary = json.loads((out / "summary.json").read_text())
+    assert saved is not None and np.allclose(saved.R, summary["registration"]["R"], atol=1e-9)
     assert "| # | L (mm) | D (mm)" in text and "fewer than the protocol's 30" in text
 
 
@@ -113,9 +127,8 @@ def test_summary_json_keys_and_the_registration_recovers_the_world(report: tuple
 def test_bad_requests_fail_with_clear_messages(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert cli.main(["validate", "--robot", "99", "--out", str(tmp_path / "x")]) == 2
     assert "no robot with id 99 in the catalogue" in capsys.readouterr().err
-    session = tmp_path / "no-ots.yaml"
-    text = config_path("sim.yaml").read_text().replace("ots: {kind: loopback, link: pty, mode: bx}", "ots: {kind: none}")
-    session.write_text(text)
+    data = read_yaml(config_path("sim.yaml"))
+    session = _session_variant(tmp_path / "no-ots.yaml", devices={**data["devices"], "ots": {"kind": "none"}})
     assert cli.main(["validate", "--config", str(session), "--robot", "1", "--out", str(tmp_path / "y")]) == 2
     assert "needs the optical tracker" in capsys.readouterr().err
     with pytest.raises(SystemExit):
@@ -132,3 +145,22 @@ def test_operator_lab_prompts_each_step() -> None:
     lab.place_robot(0, 3)
     assert len(prompts) == 3 and lab.true_pose() is None
     assert "fiducial 3 of 6" in out.getvalue() and "posture 1 of 3" in out.getvalue()
+
+
+def test_a_calibration_with_a_saved_registration_skips_the_fiducials(report: tuple[Path, str, int],
+                                                                      tmp_path: Path) -> None:
+    out, _, _ = report
+    session = _session_variant(tmp_path / "registered.yaml", calibration={
+        "source": "file", "file": str(out / "calibration_registered.yaml")})
+    buffer = io.StringIO()
+    with redirect_stdout(buffer):
+        code = cli.main(["validate", "--config", str(session), "--robot", "1", "--postures", "1", "--samples", "2",
+                         "--out", str(tmp_path / "again")])
+    assert code == 0
+    summary = json.loads((tmp_path / "again" / "summary.json").read_text())
+    first = json.loads((out / "summary.json").read_text())
+    assert summary["registration"]["source"].startswith("saved with the calibration")
+    assert summary["registration"]["R"] == pytest.approx(np.array(first["registration"]["R"]))
+    assert "fiducials" not in summary["registration"] and not (tmp_path / "again" / "calibration_registered.yaml").exists()
+    assert summary["overall"]["recognised"] == 2
+    assert summary["overall"]["statistics"]["position_mm"]["max"] < 1.0
