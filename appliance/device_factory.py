@@ -66,7 +66,7 @@ class Devices:
 
 # -- calibration --------------------------------------------------------------------------------------
 def perturbed_calibration(true_views: dict[str, Any], rotation_deg: float, translation_mm: float,
-                          seed: int) -> Calibration:
+                          seed: int, dark_level: float | None = None) -> Calibration:
     """The simulated views as the appliance believes them: each view's pose turned by ``rotation_deg``
     about a random axis and moved by ``translation_mm`` in a random direction (seeded)."""
     rng = np.random.default_rng(seed)
@@ -77,9 +77,12 @@ def perturbed_calibration(true_views: dict[str, Any], rotation_deg: float, trans
         shift = rng.normal(size=3)
         shift *= translation_mm / np.linalg.norm(shift)
         views[name] = View(name, view.K, view.dist, turn @ view.R, view.t + shift, view.image_size)
-    return Calibration.from_views(views["p"], views["q"], {
+    metadata: dict[str, Any] = {
         "source": "nominal views of the simulated biplane system",
-        "perturbation": {"rotation_deg": rotation_deg, "translation_mm": translation_mm, "seed": seed}})
+        "perturbation": {"rotation_deg": rotation_deg, "translation_mm": translation_mm, "seed": seed}}
+    if dark_level is not None:
+        metadata["detector"] = {"dark_level": float(dark_level)}   # as a dark-frame calibration would give
+    return Calibration.from_views(views["p"], views["q"], metadata)
 
 
 def turned_views(views: dict[str, Any], azimuth_deg: float) -> dict[str, Any]:
@@ -237,13 +240,6 @@ def _open_simulation(session: Session, robot: RobotSpec, coils: Any, stack: cont
     true_views = turned_views(biplane_views(sod_mm=imaging.sod_mm, sdd_mm=imaging.sdd_mm, fov_mm=imaging.fov_mm,
                                             image_size=imaging.image_size, separation_deg=imaging.separation_deg,
                                             elevation_deg=imaging.elevation_deg), imaging.azimuth_deg)
-    if config.calibration.source == "nominal":
-        p = config.calibration.perturbation
-        calibration = perturbed_calibration(true_views, p.rotation_deg, p.translation_mm, p.seed)
-    else:
-        assert config.calibration.file is not None
-        calibration = Calibration.load(session.resolve(config.calibration.file))
-
     fake, server = _loopback_amplifier(config.devices.amplifier, coils, clock)
     stack.callback(server.close)
     bench_sim = SimBench(clock, world, fake, server, None, true_views, sim.substep_ms / 1000.0)
@@ -251,8 +247,16 @@ def _open_simulation(session: Session, robot: RobotSpec, coils: Any, stack: cont
 
     body = RobotBody(robot.length_mm, robot.diameter_mm, robot.tip_angle_deg, robot.attenuation_per_mm)
     phantom = VesselPhantom(world.vessel.sample(1.0), world.vessel.radius_mm, imaging.vessel_attenuation_per_mm)
-    renderer = BiplaneRenderer(true_views, body, vessel=phantom, seed=sim.seed,
-                               settings=ImagingSettings(photons_per_pixel=imaging.photons_per_pixel))
+    detector = ImagingSettings(photons_per_pixel=imaging.photons_per_pixel)
+    renderer = BiplaneRenderer(true_views, body, vessel=phantom, seed=sim.seed, settings=detector)
+    if config.calibration.source == "nominal":
+        p = config.calibration.perturbation
+        calibration = perturbed_calibration(true_views, p.rotation_deg, p.translation_mm, p.seed,
+                                            detector.dark_level)
+    else:
+        assert config.calibration.file is not None
+        calibration = Calibration.load(session.resolve(config.calibration.file))
+
     history = bench_sim.history
 
     def scene_pose(t_s: float) -> Any:

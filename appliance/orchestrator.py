@@ -32,7 +32,8 @@ import numpy as np
 from appliance.control import CurrentAllocator, Mode, PathFollower, SafetySupervisor
 from appliance.errors import ApplianceError, DeviceError, DeviceFaultError, DeviceTimeoutError, InputDataError
 from appliance.loop_events import FrameReport, ListenerError, LoopListener, LoopStats, RecordingListener
-from appliance.recognition import PostureTracker
+from appliance.geometry import Calibration
+from appliance.recognition import PostureTracker, RecognitionSettings
 from appliance.session_config import SessionConfig
 from drivers.amplifier import Amplifier, AmplifierEvent, AmplifierFaultError
 from drivers.biplane_pairing import BiplanePair, BiplaneStream
@@ -41,7 +42,7 @@ from drivers.ndi_tracker import NDITracker, ToolSample
 log = logging.getLogger(__name__)
 
 __all__ = ["FrameReport", "ListenerError", "LoopListener", "LoopSettings", "LoopStats", "Orchestrator",
-           "RecordingListener"]
+           "RecordingListener", "recognition_settings"]
 
 #: Recognition noise allowed on top of the robot's reach when gating a new posture (mm).
 JUMP_MARGIN_MM = 2.0
@@ -65,6 +66,17 @@ class LoopSettings:
                    frame_timeout_s=loop.frame_timeout_ms / 1000.0,
                    startup_timeout_s=config.devices.xray.startup_timeout_ms / 1000.0,
                    status_every_frames=loop.status_every_frames, stop_at_end=loop.stop_at_end)
+
+
+def recognition_settings(config: SessionConfig, calibration: Calibration) -> RecognitionSettings:
+    """The session's recognition settings; the detector's dark level comes from the calibration's metadata
+    unless the session sets one (it is a property of the detector, measured with its dark frames)."""
+    from appliance.commands.track import dark_level_of
+
+    settings = config.recognition
+    if settings.dark_level == 0.0:
+        settings = settings.model_copy(update={"dark_level": dark_level_of(calibration)})
+    return settings
 
 
 def _sample_record(sample: ToolSample) -> dict[str, Any]:

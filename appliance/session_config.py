@@ -18,6 +18,7 @@ from pydantic import Field, field_validator, model_validator
 
 from appliance.config_io import StrictModel, config_path, load_model, validate_model
 from appliance.control import FollowerSettings, SafetySettings
+from appliance.recognition.settings import RecognitionSettings
 
 SCHEMA_VERSION = 1
 
@@ -198,6 +199,8 @@ class SessionConfig(StrictModel):
     calibration: CalibrationSection
     imaging: ImagingSection = ImagingSection()
     devices: DevicesSection
+    #: Posture recognition tuning; ``dark_level`` 0 means "the calibration's metadata.detector.dark_level".
+    recognition: RecognitionSettings = RecognitionSettings()
     control: FollowerSettings = FollowerSettings()
     safety: SafetySettings = SafetySettings()
     loop: LoopSection = LoopSection()

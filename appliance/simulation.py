@@ -31,7 +31,7 @@ import numpy as np
 from appliance.control import ActuationModel, CurrentAllocator, PathFollower, SafetySupervisor, load_coils, load_path
 from appliance.device_factory import Devices, open_devices
 from appliance.errors import ConfigError
-from appliance.orchestrator import FrameReport, LoopListener, LoopSettings, Orchestrator
+from appliance.orchestrator import FrameReport, LoopListener, LoopSettings, Orchestrator, recognition_settings
 from appliance.recognition import PostureTracker
 from appliance.robots import load_robots, select_robot
 from appliance.session_config import Session
@@ -122,7 +122,9 @@ class Simulation:
             self.follower = PathFollower(self.path, config.control)
             self.orchestrator = Orchestrator(
                 frames=self.devices.frames, amplifier=self.devices.amplifier,
-                tracker=PostureTracker(self.devices.calibration), follower=self.follower,
+                tracker=PostureTracker(self.devices.calibration,
+                                       recognition_settings(config, self.devices.calibration)),
+                follower=self.follower,
                 safety=SafetySupervisor(config.safety), allocator=CurrentAllocator(ActuationModel(self.coils)),
                 moment_am2=self.robot.magnetic_moment_am2, settings=LoopSettings.from_config(config),
                 clock=self.bench.clock, ots=self.devices.ots, listeners=listeners, names=self.devices.names)

@@ -32,7 +32,7 @@ def run(args: argparse.Namespace) -> int:
     from appliance.control import ActuationModel, CurrentAllocator, PathFollower, SafetySupervisor, load_coils, load_path
     from appliance.device_factory import open_devices
     from appliance.errors import ConfigError
-    from appliance.orchestrator import LoopSettings, Orchestrator, RecordingListener
+    from appliance.orchestrator import LoopSettings, Orchestrator, RecordingListener, recognition_settings
     from appliance.recognition import PostureTracker
     from appliance.recording import Recorder
     from appliance.robots import load_robots, select_robot
@@ -55,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"appliance run: {session.source}: opening devices...", file=sys.stderr, flush=True)
     with open_devices(session, robot, coils) as devices:
         orchestrator = Orchestrator(
-            frames=devices.frames, amplifier=devices.amplifier, tracker=PostureTracker(devices.calibration),
+            frames=devices.frames, amplifier=devices.amplifier, tracker=PostureTracker(devices.calibration, recognition_settings(config, devices.calibration)),
             follower=follower, safety=SafetySupervisor(config.safety), allocator=CurrentAllocator(ActuationModel(coils)),
             moment_am2=robot.magnetic_moment_am2, settings=LoopSettings.from_config(config), ots=devices.ots,
             names=devices.names)
