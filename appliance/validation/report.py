@@ -88,8 +88,9 @@ def _markdown(result: ValidationResult, rows: list[dict[str, str]], summary: dic
              (f"Run: {len(result.runs)} robot(s) x {result.plan.postures} posture(s) x {result.plan.samples} "
               f"biplane pairs per posture{shortfall}."),
              ("Errors are mean ± SD over recognised pairs against the tracker's reference mapped into the X-ray frame;"
-              " pixels: mean of both views; processing: recognition of one pair on this host; ambiguous: pairs whose"
-              " axis lies near an epipolar plane (the mirror solution is resolved from the previous frames)."), "",
+              " pixels: mean of both views; processing: recognition of one pair on this host; ambiguous: pairs the"
+              " recognition flagged (axis near an epipolar plane, axis uncertain, or the robot overlapping another"
+              " structure: the reason column of samples.csv says which), included in the errors."), "",
              header, "|" + "---|" * 12]
     for r in rows:
         lines.append(f"| {r['robot']} | {r['length_mm']} | {r['diameter_mm']} | {r['tip_angle_deg']} | {r['material']} "

@@ -95,7 +95,7 @@ class Sample:
     pixels_p: int | None
     pixels_q: int | None
     processing_ms: float
-    #: Angle between the two views' axis planes (deg): near 0 the axis lies in an epipolar plane (ambiguous).
+    #: Angle between the two views' axis planes (deg): near 0 the axis lies in an epipolar plane.
     plane_angle_deg: float | None
     reason: str | None
     centroid_mm: list[float] | None
