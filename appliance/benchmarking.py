@@ -28,6 +28,7 @@ import logging
 import math
 import os
 import platform
+import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -87,16 +88,19 @@ def percentiles(values: list[float]) -> dict[str, float | None]:
 
 
 class _TimedPort:
-    """A serial port proxy that remembers when its last ``write`` returned (the command is then written:
-    in the kernel's buffer on its way out). Everything else goes to the real port."""
+    """A serial port proxy that remembers when its last ``write`` from the creating thread returned (the
+    command is then written: in the kernel's buffer on its way out); the driver's heartbeat thread writes
+    too, and is not what the loop waits for. Everything else goes to the real port."""
 
     def __init__(self, port: Any) -> None:
         object.__setattr__(self, "_port", port)
+        object.__setattr__(self, "_owner", threading.get_ident())
         object.__setattr__(self, "written_at", 0.0)
 
     def write(self, data: bytes) -> int | None:
         n = self._port.write(data)
-        object.__setattr__(self, "written_at", time.perf_counter())
+        if threading.get_ident() == self._owner:
+            object.__setattr__(self, "written_at", time.perf_counter())
         return n
 
     def __getattr__(self, name: str) -> Any:
@@ -214,8 +218,8 @@ def run_bench(source: FrameSource, frames: int, amplifier_factory: Callable[[Any
               settings: RecognitionSettings | None = None) -> BenchResult:
     """Measure ``frames`` pairs of ``source`` (see the module docstring); ``amplifier_url`` is a served
     amplifier (pty path or TCP address) for the command stage, skipped when None. ``amplifier_factory``
-    builds the driver from an open port (default :class:`drivers.amplifier.Amplifier`, no heartbeat: the
-    loop commands every frame). ``moment_am2`` is the robot's magnetic moment, for the force allocation."""
+    builds the driver from an open port (default :class:`drivers.amplifier.Amplifier`, with its
+    heartbeat: rendering a frame and the cold detection come between two commands). ``moment_am2`` is the robot's magnetic moment, for the force allocation."""
     from drivers.amplifier import Amplifier
     from drivers.transport import open_serial
 
@@ -234,7 +238,7 @@ def run_bench(source: FrameSource, frames: int, amplifier_factory: Callable[[Any
     amplifier = port = None
     if amplifier_url is not None:
         port = _TimedPort(open_serial(amplifier_url, timeout=0.05))
-        amplifier = (amplifier_factory or (lambda p: Amplifier(p, heartbeat_period_s=0)))(port)
+        amplifier = (amplifier_factory or Amplifier)(port)
         amplifier.enable()
     commanded = np.zeros(allocator.model.n)
     dt = 1.0 / source.fps
