@@ -220,7 +220,12 @@ def _open_simulation(session: Session, robot: RobotSpec, coils: Any, stack: cont
     from drivers.loopback.loopback_grabber import LoopbackFrameSource, LoopbackScene, make_usb_backend
     from drivers.loopback.world import SimWorld
     from drivers.loopback.xray_render import (
-        BiplaneRenderer, ImagingSettings, RobotBody, RobotPose, VesselPhantom, biplane_views,
+        BiplaneRenderer,
+        ImagingSettings,
+        RobotBody,
+        RobotPose,
+        VesselPhantom,
+        biplane_views,
     )
     from firmware_protocol import usb_grabber as usb_proto
 

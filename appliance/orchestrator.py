@@ -31,8 +31,8 @@ import numpy as np
 
 from appliance.control import CurrentAllocator, Mode, PathFollower, SafetySupervisor
 from appliance.errors import ApplianceError, DeviceError, DeviceFaultError, DeviceTimeoutError, InputDataError
-from appliance.loop_events import FrameReport, ListenerError, LoopListener, LoopStats, RecordingListener
 from appliance.geometry import Calibration
+from appliance.loop_events import FrameReport, ListenerError, LoopListener, LoopStats, RecordingListener
 from appliance.recognition import PostureTracker, RecognitionSettings
 from appliance.session_config import SessionConfig
 from drivers.amplifier import Amplifier, AmplifierEvent, AmplifierFaultError

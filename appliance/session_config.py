@@ -119,9 +119,8 @@ class XrayDevice(StrictModel):
 
     @model_validator(mode="after")
     def _sources_given(self) -> XrayDevice:
-        if self.kind == "sources":
-            if not self.sources or sorted(self.sources) != ["p", "q"]:
-                raise ValueError("kind 'sources' needs 'sources: {p: URL, q: URL}'")
+        if self.kind == "sources" and (not self.sources or sorted(self.sources) != ["p", "q"]):
+            raise ValueError("kind 'sources' needs 'sources: {p: URL, q: URL}'")
         return self
 
 

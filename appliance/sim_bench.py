@@ -9,6 +9,7 @@ start-up and shutdown), and injects faults. Nothing here imports the fakes: the 
 from __future__ import annotations
 
 import contextlib
+import itertools
 import threading
 import time
 from collections import deque
@@ -84,7 +85,7 @@ class PoseHistory:
             raise RuntimeError("pose history is empty")
         if t_s <= samples[0].t_s:
             return samples[0].centroid_mm, samples[0].direction
-        for before, after in zip(samples, samples[1:]):
+        for before, after in itertools.pairwise(samples):
             if before.t_s <= t_s <= after.t_s:
                 span = after.t_s - before.t_s
                 w = 0.0 if span <= 0.0 else (t_s - before.t_s) / span
@@ -181,7 +182,7 @@ class SimBench:
     def stop_grabbers(self) -> None:
         """The imaging chain goes silent (generator off, grabbers stop streaming) without any error."""
         for device in self.grabber_devices.values():
-            with device._lock:       # noqa: SLF001 - the fake's own lock; a silent stop has no protocol request
+            with device._lock:       # the fake's own lock: a silent stop has no protocol request
                 device.streaming = False
         for source in self.frame_sources.values():
             if hasattr(source, "scene"):

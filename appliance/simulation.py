@@ -232,12 +232,12 @@ def summary_lines(result: SimResult, stats: object) -> list[str]:
         f"  stop          {result.stop_reason or 'time limit'}",
         f"  cross-track   RMS {rms:.3f} mm   max {peak:.3f} mm   (true centroid to the path, {len(cross)} frames)",
         f"  path end      {end}",
-        f"  frames        {stats.pairs} pairs: {stats.tracked} tracked, {stats.lost} lost; "
-        f"{stats.no_pair} steps without a new pair",
-        f"  loop latency  frame on host -> command written: p50 {percentile_ms(stats.latency_write_s, 50):.1f} ms, "
+        (f"  frames        {stats.pairs} pairs: {stats.tracked} tracked, {stats.lost} lost; "
+        f"{stats.no_pair} steps without a new pair"),
+        (f"  loop latency  frame on host -> command written: p50 {percentile_ms(stats.latency_write_s, 50):.1f} ms, "
         f"p99 {percentile_ms(stats.latency_write_s, 99):.1f} ms; -> acknowledged: "
-        f"p50 {percentile_ms(stats.latency_ack_s, 50):.1f} ms, p99 {percentile_ms(stats.latency_ack_s, 99):.1f} ms",
-        f"  time          {result.sim_s:.2f} s simulated in {result.wall_s:.2f} s wall: "
-        f"{speed} than real time (x{result.realtime_factor:.2f})",
+        f"p50 {percentile_ms(stats.latency_ack_s, 50):.1f} ms, p99 {percentile_ms(stats.latency_ack_s, 99):.1f} ms"),
+        (f"  time          {result.sim_s:.2f} s simulated in {result.wall_s:.2f} s wall: "
+        f"{speed} than real time (x{result.realtime_factor:.2f})"),
         f"  coils         {'ramped to zero and disabled' if result.shutdown_safe else 'NOT confirmed at zero by the amplifier'}",
     ]

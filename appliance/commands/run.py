@@ -29,7 +29,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from appliance.commands.sim import ProgressLine, progress_text
-    from appliance.control import ActuationModel, CurrentAllocator, PathFollower, SafetySupervisor, load_coils, load_path
+    from appliance.control import (
+        ActuationModel,
+        CurrentAllocator,
+        PathFollower,
+        SafetySupervisor,
+        load_coils,
+        load_path,
+    )
     from appliance.device_factory import open_devices
     from appliance.errors import ConfigError
     from appliance.orchestrator import LoopSettings, Orchestrator, RecordingListener, recognition_settings
@@ -86,10 +93,10 @@ def run(args: argparse.Namespace) -> int:
     stats = orchestrator.stats
     print("\n".join([
         f"appliance run: stopped: {orchestrator.stop_reason or 'end'}",
-        f"  frames        {stats.pairs} pairs: {stats.tracked} tracked, {stats.lost} lost; "
-        f"{stats.no_pair} steps without a new pair",
-        f"  loop latency  frame on host -> command written: p50 {percentile_ms(stats.latency_write_s, 50):.1f} ms, "
-        f"p99 {percentile_ms(stats.latency_write_s, 99):.1f} ms",
+        (f"  frames        {stats.pairs} pairs: {stats.tracked} tracked, {stats.lost} lost; "
+        f"{stats.no_pair} steps without a new pair"),
+        (f"  loop latency  frame on host -> command written: p50 {percentile_ms(stats.latency_write_s, 50):.1f} ms, "
+        f"p99 {percentile_ms(stats.latency_write_s, 99):.1f} ms"),
         f"  coils         {'ramped to zero and disabled' if orchestrator.shutdown_safe else 'NOT confirmed at zero'}",
         f"  written       {recorder.path}" if recorder is not None else "  written       (recording disabled)",
     ]))

@@ -118,9 +118,9 @@ def run(args: argparse.Namespace) -> int:
     plot = plot_path(out / "path.png", result.path_mm, [s.centroid_mm for s in result.truth],
                      [s.t_s for s in result.truth], result.cross_track(), tracked_mm=result.tracked_mm,
                      events=events, title=f"appliance sim: robot {robot.id} along {session.vessel_path.name}'s path")
-    lines = [f"appliance sim: robot {robot.id} (L {robot.length_mm:g} mm, D {robot.diameter_mm:g} mm), "
+    lines = [(f"appliance sim: robot {robot.id} (L {robot.length_mm:g} mm, D {robot.diameter_mm:g} mm), "
              f"{config.imaging.fps:g} fps biplane, {len(result.path_mm)} path points "
-             f"({length_mm:.1f} mm)"]
+             f"({length_mm:.1f} mm)")]
     lines += summary_lines(result, stats)
     lines.append(f"  written       {plot}" + (f", {recorder.path}" if recorder is not None else ""))
     print("\n".join(lines))

@@ -19,7 +19,7 @@ from appliance.config_io import config_path, read_yaml
 from appliance.orchestrator import RecordingListener
 from appliance.recording import Recorder, RecordingReader
 from appliance.session_config import Session, session_from_mapping
-from appliance.simulation import ZERO_CURRENT_A, SimResult, Simulation
+from appliance.simulation import SimResult, Simulation
 
 FPS = 30.0
 WATCHDOG_S = 0.2
