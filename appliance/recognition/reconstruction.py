@@ -208,7 +208,7 @@ def reconstruct(calibration: Calibration, F: np.ndarray, feat_p: Features2D, fea
         return _finish_paper(calibration, centroid, d, hyps[case or pairing.case], feat_p, feat_q, pairing,
                              plane_angle, ambiguous, reasons, previous_direction)
     return _finish_weighted(calibration, centroid, d, feat_p, feat_q, pairing, plane_angle, ambiguous, reasons,
-                            previous_direction)
+                            previous_direction, settings)
 
 
 def _finish_paper(calibration: Calibration, centroid: np.ndarray, d: np.ndarray, tips: np.ndarray,
@@ -261,21 +261,29 @@ def perspective_corrected_centroid(calibration: Calibration, feats: dict[str, Fe
 
 def _finish_weighted(calibration: Calibration, centroid: np.ndarray, d: np.ndarray, feat_p: Features2D,
                      feat_q: Features2D, pairing: Pairing, plane_angle: float, ambiguous: bool, reasons: list[str],
-                     previous: np.ndarray | None) -> Reconstruction:
+                     previous: np.ndarray | None, settings: RecognitionSettings | None = None) -> Reconstruction:
+    settings = settings or RecognitionSettings()
     views = {"p": (calibration.p, feat_p), "q": (calibration.q, feat_q)}
     centroid = perspective_corrected_centroid(calibration, {"p": feat_p, "q": feat_q}, centroid, d)
     # Which 2D tip of each view is the +d end, and where the views put the head.
     plus_index: dict[str, int] = {}
-    votes: list[bool] = []  # True: the head is the +d end
+    votes: list[tuple[float, bool]] = []  # (how side-on the view sees the axis, the head is the +d end)
     for name, (view, feat) in views.items():
         b, _ = ray_line_parameters(view, feat.tips, centroid, d)
         plus_index[name] = 0 if b[0] >= b[1] else 1
         if feat.head_index is not None:
-            votes.append(feat.head_index == plus_index[name])
-    head_identified = bool(votes) and all(v == votes[0] for v in votes)
+            ray = _unit(centroid - view.source_mm)
+            votes.append((float(np.linalg.norm(np.cross(ray, d))), feat.head_index == plus_index[name]))
+    votes.sort(reverse=True)
+    if len(votes) > 1 and votes[0][1] != votes[1][1] and votes[1][0] < settings.head_foreshortening * votes[0][0]:
+        # A view that sees the axis strongly foreshortened squeezes the cone's ramp into the body's
+        # blurred end (and a flat end seen obliquely shows its rim as a ramp): its vote is the weaker
+        # evidence, so the side-on view decides.
+        votes = votes[:1]
+    head_identified = bool(votes) and all(v[1] == votes[0][1] for v in votes)
     if votes and not head_identified:
         reasons.append("the two views disagree on which end is the head")
-    if head_identified and not votes[0]:
+    if head_identified and not votes[0][1]:
         d = -d
         plus_index = {k: 1 - v for k, v in plus_index.items()}
     elif not head_identified and previous is not None and np.dot(d, previous) < 0:

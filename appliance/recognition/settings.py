@@ -76,6 +76,9 @@ class RecognitionSettings(StrictModel):
     tips_band_px: float = Field(12.0, gt=0)
     #: ... or within this fraction of the longer image of the robot (a long robot's cone tip is less sharp).
     tips_band_fraction: float = Field(0.2, gt=0)
+    #: Several candidate pairs on each other's epipolar lines: cost (px) added per unit of ``|log|`` of the
+    #: ratio of their widths in mm (a rod is as wide as its diameter from every direction).
+    width_mismatch_px: float = Field(8.0, ge=0)
     #: Pairings A/B are "clearly separated" when the worse RMS epipolar distance exceeds the better by
     #: this many pixels; otherwise the frame is ambiguous.
     ambiguity_px: float = Field(3.0, gt=0)
@@ -89,6 +92,9 @@ class RecognitionSettings(StrictModel):
     #: flat end's, and longer by at least ``head_min_ramp_px``.
     head_ramp_ratio: float = Field(1.6, gt=1)
     head_min_ramp_px: float = Field(1.0, ge=0)
+    #: When the views disagree on the head, the view seeing the axis more side-on decides if the other's
+    #: sine of the ray-axis angle is below this fraction of its own (foreshortened view: weaker evidence).
+    head_foreshortening: float = Field(0.5, gt=0, le=1)
 
     #: A frame whose background under the robot varies by more than this fraction of the robot's
     #: contrast (overlap with a vessel, say) is flagged ambiguous: reduced accuracy.

@@ -13,6 +13,7 @@ never with a made-up pose.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import dataclass
 
@@ -200,12 +201,28 @@ class PostureTracker:
                 break
             rms = pairing_rms(self.F, self.calibration.p.undistort_points(feats["p"].tips),
                               self.calibration.q.undistort_points(feats["q"].tips))
-            cost = min(rms) + distance
+            cost = min(rms) + distance + self.settings.width_mismatch_px * self._width_mismatch(blobs)
             if best is None or cost < best[0]:
                 best = (cost, blobs, feats)
         timings["features"] += (time.perf_counter_ns() - start) / 1e3
         assert best is not None
         return (best[1], best[2]), ""
+
+    def _width_mismatch(self, blobs: dict[str, Blob]) -> float:
+        """``|log|`` of the ratio of the two blobs' widths in mm at the pair's triangulated position.
+
+        A rod's projected width is its diameter from any direction (end-on it is a disc of that
+        diameter), so the robot's two images agree; a vessel seen end-on in one view (as wide as its
+        lumen) paired with the robot in the other does not, even when its centroid and ends happen to
+        lie on the robot's epipolar lines.
+        """
+        X = triangulate(self.calibration.p, self.calibration.q, blobs["p"].centroid_px, blobs["q"].centroid_px,
+                        optimal=False)[0]
+        if not np.all(np.isfinite(X)):
+            return 0.0
+        widths = [blob.width_px * float(np.linalg.norm(X - self.calibration.views[name].source_mm))
+                  / float(self.calibration.views[name].K[0, 0]) for name, blob in blobs.items()]
+        return abs(math.log(max(widths[0], 1e-6) / max(widths[1], 1e-6)))
 
     def _metal_only(self, pairs: list[tuple[int, int, float]], candidates: dict[str, list[Blob]]
                     ) -> tuple[list[tuple[int, int, float]], float]:
