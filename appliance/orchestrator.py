@@ -7,7 +7,10 @@ amplifier driver's fault events). Every step's stages are timed on the wall cloc
 "the later frame of the pair is on the host" to "the current command is written to the amplifier" is
 measured, as on a bench.
 
-Safety: the :class:`~appliance.control.SafetySupervisor` holds, zeroes or stops according to tracking;
+Safety: a recognised posture the robot cannot have reached from the last accepted one at the speed
+limit (plus ``JUMP_MARGIN_MM``) is rejected as lost - when the robot leaves the images, recognition
+can take the contrast-filled vessel for it, and the loop must not steer toward that. The
+:class:`~appliance.control.SafetySupervisor` holds, zeroes or stops according to tracking;
 in addition the loop latches a stop (output disabled at once, reason recorded) on an amplifier fault,
 a lost amplifier link, a silent imaging chain (no pair for ``frame_timeout_ms``), a frame source error
 and an operator stop (:meth:`Orchestrator.request_stop`, safe from any thread). :meth:`shutdown` runs

@@ -67,3 +67,27 @@ def test_path_plot_is_written_and_checks_its_inputs(tmp_path: Path) -> None:
     assert plot.read_bytes()[:4] == b"\x89PNG"
     with pytest.raises(ValueError, match="one entry per frame"):
         plot_path(tmp_path / "q.png", path, truth, times[:-1], np.zeros(50))
+
+
+def test_progress_line_shows_frame_position_error_and_currents_on_a_terminal_only() -> None:
+    import io
+
+    from appliance.commands.sim import ProgressLine, progress_text
+    from appliance.loop_events import FrameReport
+
+    report = FrameReport(index=3, t_s=1.5, frame=45, posture={"centroid_mm": [-12.04, -8.31, 3.0]}, tracked=True,
+                         mode="run", reason=None, cross_track_mm=0.31, progress=0.52, done=False,
+                         field_T=np.zeros(3), force_N=np.zeros(3), commanded_a=np.array([1.0, -4.9]),
+                         measured_a=np.array([1.0, -4.86]), scale=1.0, limited_by=None)
+    text = progress_text(report, cross_track_mm=0.18)
+    assert "frame    45" in text and "pos (-12.0, -8.3, 3.0) mm" in text and "xt 0.18 mm" in text
+    assert "52%" in text and "|I| max 4.9 A" in text
+
+    class Terminal(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    piped, terminal = io.StringIO(), Terminal()
+    ProgressLine(piped).show(text)
+    ProgressLine(terminal).show(text)
+    assert piped.getvalue() == "" and terminal.getvalue().startswith("\rframe    45")
