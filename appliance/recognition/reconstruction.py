@@ -95,7 +95,7 @@ def fuse_axis(calibration: Calibration, centroid: np.ndarray, feats: dict[str, F
     Far from an epipolar plane the planes dominate (the tips' rim biases do not reach the axis); in it,
     only the tips can say where in the common plane the axis lies.
     """
-    length = math.inf
+    sigma_tips = 0.0
     M = np.zeros((3, 3))
     for name, feat in feats.items():
         view = calibration.views[name]
@@ -109,12 +109,15 @@ def fuse_axis(calibration: Calibration, centroid: np.ndarray, feats: dict[str, F
             angle_sigma = 1.0
         sigma = math.hypot(angle_sigma * sin_a, settings.axis_floor_rad)
         M += np.outer(n, n) / sigma ** 2
-        # The tips' direction is only as good as the shortest image of the robot.
-        length = min(length, float(np.linalg.norm(feat.tips[0] - feat.tips[1])))
-    mm_per_px = float(np.linalg.norm(centroid - calibration.p.source_mm)) / float(calibration.p.K[0, 0])
-    sigma_tips = settings.tip_sigma_px * math.sqrt(2.0) / max(length, 1.0)
+        # The tips' direction is only as good as the worst view's tips over its image length. Seen
+        # obliquely, an end shows its face's rim (an ellipse as long as the diameter times the cosine
+        # of the ray-axis angle) along the axis; nearly end-on that dwarfs the image's short length.
+        image_length = max(float(np.linalg.norm(feat.tips[0] - feat.tips[1])), 1.0)
+        width_px = 4.0 * math.sqrt(max(feat.eigenvalues[1], 0.0))
+        cos_a = abs(float(np.dot(ray, d_tips)))
+        tip_sigma = math.hypot(settings.tip_sigma_px, settings.tip_rim_fraction * width_px * cos_a)
+        sigma_tips = max(sigma_tips, tip_sigma * math.sqrt(2.0) / image_length)
     M += (np.eye(3) - np.outer(d_tips, d_tips)) / sigma_tips ** 2
-    del mm_per_px  # the tip noise is compared with the image length, so the scale cancels
     values, vectors = np.linalg.eigh(M)
     d = vectors[:, 0]
     sigma = 1.0 / math.sqrt(max(float(values[1] - values[0]), 1e-12))

@@ -68,6 +68,9 @@ class RecognitionSettings(StrictModel):
     max_axis_sigma_deg: float = Field(2.5, gt=0)
     #: Noise (px) of a tip along the axis, which weighs the tips' direction against the axis planes.
     tip_sigma_px: float = Field(0.7, gt=0)
+    #: ... plus this fraction of the image's width times the cosine of the ray-axis angle: the end face's
+    #: rim, seen obliquely, blurs where along the axis a tip is (dominant when a view sees it nearly end-on).
+    tip_rim_fraction: float = Field(0.25, ge=0)
 
     # -- correspondence and reconstruction ------------------------------------------------------------
     #: Two views' blobs pair up only if their centroids are within this epipolar distance (px).

@@ -184,3 +184,14 @@ def test_head_of_a_cone_heavy_robot_seen_end_on_in_one_view(scene: tuple[Calibra
             unpreferred_right += results[1e-6]
     # Without preferring the side-on view, some of these poses lose the head (the test can fail).
     assert unpreferred_right < 4
+    # Closer to q's ray (3-4 degrees) q's tips are rims of the end faces: the axis may be a few degrees
+    # off, but then the frame must say so (no silent failure).
+    for sign in (1.0, -1.0):
+        direction = sign * (ray_q + 0.06 * side + 0.03 * np.array([0.0, 0.0, 1.0]))
+        pose = RobotPose((2.0, -1.0, 1.0), direction / np.linalg.norm(direction))
+        pair = renderer.render(pose)
+        posture = PostureTracker(calibration, RecognitionSettings(dark_level=ImagingSettings().dark_level)).process(
+            pair.images["p"], pair.images["q"], frame=0, t=0.0)
+        assert posture.ok and posture.direction is not None
+        error = math.degrees(math.acos(min(1.0, abs(float(np.dot(posture.direction, pose.direction))))))
+        assert posture.ambiguous or error <= 5.0, f"silent axis error {error:.1f} deg"
