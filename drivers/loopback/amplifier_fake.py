@@ -342,6 +342,9 @@ class FakeAmplifier:
             return self._nak(MsgType.CLEAR_FAULT, NakReason.ESTOP_ACTIVE)
         if self._latched & Fault.OVER_TEMPERATURE and np.any(self._temperature > self.config.restart_temperature_c):
             return self._nak(MsgType.CLEAR_FAULT, NakReason.CONDITION_PRESENT)
+        if self._over_current_present():
+            # The output is cut but the coil current still decays through L/R: clearing now would re-trip.
+            return self._nak(MsgType.CLEAR_FAULT, NakReason.CONDITION_PRESENT)
         if self._state is State.FAULT:
             self._cut_output()
             self._state = State.DISABLED
@@ -387,6 +390,10 @@ class FakeAmplifier:
 
     # ---- physics and protection --------------------------------------------------------------
 
+    def _over_current_present(self) -> bool:
+        limit_a = self._max_ma / 1000.0 * _OVER_CURRENT_FACTOR + _OVER_CURRENT_MARGIN_A
+        return bool(np.any(np.abs(self._actual) > limit_a))
+
     def _cut_output(self) -> None:
         self._driving = False
         self._target[:] = 0.0
@@ -406,8 +413,7 @@ class FakeAmplifier:
         cfg = self.config
         if self._estop_input:
             self._trip(Fault.ESTOP, hard=True)
-        limit_a = self._max_ma / 1000.0 * _OVER_CURRENT_FACTOR + _OVER_CURRENT_MARGIN_A
-        if np.any(np.abs(self._actual) > limit_a):
+        if self._over_current_present():
             self._trip(Fault.OVER_CURRENT, hard=True)
         if np.any(self._temperature > cfg.over_temperature_c):
             self._trip(Fault.OVER_TEMPERATURE, hard=False)

@@ -173,6 +173,8 @@ def test_over_current_cuts_the_output_and_is_a_typed_error(server: PtyServer, fa
         with pytest.raises(OverCurrentError) as info:
             amp.set_currents(np.array([1.0, 0.0, 0.0, 0.0]))
         assert info.value.faults & Fault.OVER_CURRENT and not fake.snapshot().output_on
+        # The surge decays through the coil's L/R once the output is cut; only then may the fault clear.
+        assert wait_until(lambda: float(np.max(np.abs(fake.measured_currents_a()))) < 1.0)
         amp.clear_fault()
         amp.enable()
 

@@ -209,6 +209,18 @@ def test_over_current_cuts_the_output_at_once() -> None:
     assert snap.faults & Fault.OVER_CURRENT and not snap.output_on and snap.state is State.FAULT
 
 
+def test_over_current_clears_only_once_the_surge_has_decayed() -> None:
+    host = enabled_host()
+    host.fake.inject_over_current(channel=2)
+    reply = host.send(ClearFault())                       # the surge still flows through the coil
+    assert isinstance(reply, Nak) and reply.reason is NakReason.CONDITION_PRESENT
+    host.wait(0.1)                                        # ten L/R time constants of the default coil
+    assert isinstance(host.send(ClearFault()), Ack)
+    assert isinstance(host.send(Enable()), Ack)
+    host.wait(0.01)
+    assert host.fake.snapshot().state is State.ENABLED   # and it does not trip again
+
+
 def test_coil_heats_towards_i2r_times_thermal_resistance() -> None:
     cfg = FakeAmplifierConfig(channels=1, thermal_time_constant_s=0.5, thermal_resistance_k_per_w=2.0)
     host = enabled_host(cfg)
