@@ -6,6 +6,8 @@ extra write, on a reply the driver throws away unread, and (at the end) on steps
 """
 from __future__ import annotations
 
+import threading
+
 import time
 from collections.abc import Iterator
 
@@ -308,11 +310,25 @@ def test_close_stops_tracking_and_closes_once(scripted: list[ScriptedPort]) -> N
 
 def test_background_reader_hands_over_newest_frame_then_its_error(scripted: list[ScriptedPort]) -> None:
     frames = [encode_reply(f"0101MISSING00000031{n:08X}\n0000") for n in (1, 2, 3)]
+    error = encode_error(0x0C)
     ndi = tracker(scripted, [(cmd("TSTART:"), OKAY)] + [(cmd("TX:0001"), f) for f in frames]
-                  + [(cmd("TX:0001"), encode_error(0x0C))])
+                  + [(cmd("TX:0001"), error)])
+    port = scripted[-1]
+    seen_frame_3 = threading.Event()
+    plain_reply = port._reply
+
+    def reply_after_frame_3_was_seen(reply: bytes | None) -> None:
+        # Hold the error back until the test has taken frame 3: otherwise a fast reader can pass
+        # frame 3 and reach the error before the test thread looks, and the test would race.
+        if reply == error:
+            seen_frame_3.wait(timeout=5.0)
+        plain_reply(reply)
+
+    port._reply = reply_after_frame_3_was_seen  # type: ignore[method-assign]
     ndi.start()
     ndi.start_streaming(rate_hz=200)
     assert ndi.wait_for_frame(2, timeout_s=2.0)[0].frame == 3
+    seen_frame_3.set()
     with pytest.raises(NdiCommandError, match="ERROR0C"):
         ndi.wait_for_frame(3, timeout_s=2.0)
     with pytest.raises(NdiCommandError):
