@@ -382,6 +382,26 @@ from appliance.epipolar import (  # noqa: E402
 )
 
 __all__ = [
-    "Calibration", "CalibrationModel", "View", "ViewModel", "epipolar_distance_px", "epipolar_lines",
+    "Calibration", "CalibrationModel", "View", "ViewModel", "dark_level_of", "epipolar_distance_px", "epipolar_lines",
     "epipolar_plane_angle_deg", "fundamental_matrix", "reprojection_error_px", "triangulate",
 ]
+
+
+def dark_level_of(calibration: Calibration, override: float | None = None) -> float:
+    """The detector's dark level (gray levels): ``override`` if given, else the calibration file's
+    ``metadata.detector.dark_level``, else 0. A present but invalid value is a CalibrationError."""
+    if override is not None:
+        return float(override)
+    detector = calibration.metadata.get("detector")
+    if detector is None:
+        return 0.0
+    where = calibration.metadata.get("loaded_from", "calibration")
+    value = detector.get("dark_level") if isinstance(detector, dict) else None
+    if not isinstance(detector, dict):
+        raise CalibrationError(f"{where}: metadata.detector: expected a mapping, got {detector!r}")
+    if value is None:
+        return 0.0
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= float(value) < float("inf"):
+        raise CalibrationError(f"{where}: metadata.detector.dark_level: expected a finite number >= 0 "
+                               f"(gray levels), got {value!r}")
+    return float(value)

@@ -34,7 +34,7 @@ import numpy as np
 
 from appliance.control import CurrentAllocator, Mode, PathFollower, SafetySupervisor
 from appliance.errors import ApplianceError, DeviceError, DeviceFaultError, DeviceTimeoutError, InputDataError
-from appliance.geometry import Calibration
+from appliance.geometry import Calibration, dark_level_of
 from appliance.loop_events import FrameReport, ListenerError, LoopListener, LoopStats, RecordingListener
 from appliance.recognition import PostureTracker, RecognitionSettings
 from appliance.session_config import SessionConfig
@@ -74,7 +74,6 @@ class LoopSettings:
 def recognition_settings(config: SessionConfig, calibration: Calibration) -> RecognitionSettings:
     """The session's recognition settings; the detector's dark level comes from the calibration's metadata
     unless the session sets one (it is a property of the detector, measured with its dark frames)."""
-    from appliance.commands.track import dark_level_of
 
     settings = config.recognition
     if settings.dark_level == 0.0:

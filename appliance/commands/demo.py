@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 from appliance.commands._common import prepare_frame_folder
-from appliance.commands.track import non_negative_float
+from appliance.commands._common import non_negative_float
 
 NAME = "demo"
 HELP = "render a biplane scene of a robot moving through a vessel, track it and compare with the truth"
@@ -211,7 +211,8 @@ def _summary(out: Path, scene: DemoScene, result: dict[str, Any], seconds: dict[
 def run(args: argparse.Namespace) -> int:
     import time
 
-    from appliance.commands.track import dark_level_of, load_inputs, track_folder
+    from appliance.commands.track import load_inputs, track_folder
+    from appliance.geometry import dark_level_of
     from appliance.recognition import PostureTracker, RecognitionSettings
     from appliance.robots import load_robots, select_robot
 

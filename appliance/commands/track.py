@@ -27,7 +27,8 @@ import time
 from collections import Counter
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any
-from appliance.commands._common import output_stream, positive_float
+from appliance.commands._common import non_negative_float, output_stream, positive_float
+from appliance.geometry import dark_level_of
 
 if TYPE_CHECKING:
     from appliance.geometry import Calibration
@@ -39,40 +40,6 @@ HELP = "recognise the robot's 3D posture in every frame pair of a biplane frame 
 log = logging.getLogger(__name__)
 
 DEFAULT_FPS = 30.0
-
-
-def non_negative_float(text: str) -> float:
-    """argparse type: a finite number >= 0."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not (value >= 0.0 and value != float("inf")):
-        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {text}")
-    return value
-
-
-def dark_level_of(calibration: Calibration, override: float | None = None) -> float:
-    """The detector's dark level (gray levels): ``override`` if given, else the calibration file's
-    ``metadata.detector.dark_level``, else 0. A present but invalid value is a CalibrationError."""
-    from appliance.errors import CalibrationError
-
-    if override is not None:
-        return float(override)
-    detector = calibration.metadata.get("detector")
-    if detector is None:
-        return 0.0
-    where = calibration.metadata.get("loaded_from", "calibration")
-    value = detector.get("dark_level") if isinstance(detector, dict) else None
-    if not isinstance(detector, dict):
-        raise CalibrationError(f"{where}: metadata.detector: expected a mapping, got {detector!r}")
-    if value is None:
-        return 0.0
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= float(value) < float("inf"):
-        raise CalibrationError(f"{where}: metadata.detector.dark_level: expected a finite number >= 0 "
-                               f"(gray levels), got {value!r}")
-    return float(value)
-
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -113,8 +80,6 @@ def load_inputs(folder: Path, calibration: Path | None) -> tuple[BiplaneFolder, 
         raise InputDataError(f"{folder}: no frame pairs to track ({counts}; "
                              "a pair is DIR/p/NNNNNN.png and DIR/q/NNNNNN.png with the same number)")
     return frames, cal
-
-
 
 
 class _Progress:

@@ -232,7 +232,7 @@ def test_progress_only_on_a_terminal(rendered: tuple[Path, list[dict[str, object
 
 # -- detector dark level ----------------------------------------------------------------------------
 def test_dark_level_from_calibration_metadata_and_override(tmp_path: Path) -> None:
-    from appliance.commands.track import dark_level_of
+    from appliance.geometry import dark_level_of
     from appliance.errors import CalibrationError
 
     cal = _calibration()
