@@ -281,8 +281,9 @@ def _open_simulation(session: Session, robot: RobotSpec, coils: Any, stack: cont
         bench_sim.grabber_devices = {plane: backend.device(f"XRG-{plane.upper()}") for plane in ("p", "q")}
     else:
         urls = {plane: f"loopback grabber, plane {plane}" for plane in ("p", "q")}
-        sources = {plane: LoopbackFrameSource(scene, plane, clock=clock, sleep=clock.sleep, seed=sim.seed)
-                   for plane in ("p", "q")}
+        # Each plane its own random stream: drops and jitter must not be identical on p and q.
+        sources = {plane: LoopbackFrameSource(scene, plane, clock=clock, sleep=clock.sleep, seed=sim.seed + index)
+                   for index, plane in enumerate(("p", "q"))}
     bench_sim.frame_sources = sources
     # Started at simulated t = 0, so the grabbers' exposure clock is the world's clock.
     frames = _stream(sources, config)
