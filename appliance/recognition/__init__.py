@@ -2,7 +2,9 @@
 
 The pipeline, one module per stage (each stage is a plain function, so it can be timed alone):
 
-* :mod:`.segmentation` - attenuation image, background, robot candidates (:func:`segment`);
+* :mod:`.background` - the open-field background ``log B``, kept coarse (:func:`log_background`);
+* :mod:`.segmentation` - attenuation image, robot candidates in a ROI (:func:`segment`) or anywhere
+  (:func:`detect`, coarse-to-fine);
 * :mod:`.features` - PCA features per view (:func:`weighted_features`, the paper's :func:`paper_features`);
 * :mod:`.correspondence` - tip pairing cases A/B by geometric epipolar distance (:func:`choose_pairing`);
 * :mod:`.reconstruction` - centroid, axis, tips, head, length (:func:`reconstruct`);
@@ -22,13 +24,22 @@ from appliance.recognition.features import (
 )
 from appliance.recognition.posture import Posture, ViewObservation
 from appliance.recognition.reconstruction import Reconstruction, reconstruct
-from appliance.recognition.segmentation import Blob, Roi, attenuation, log_background, noise_sigma, segment
+from appliance.recognition.segmentation import (
+    Blob,
+    LogBackground,
+    Roi,
+    attenuation,
+    detect,
+    log_background,
+    noise_sigma,
+    segment,
+)
 from appliance.recognition.settings import RecognitionSettings
 from appliance.recognition.tracker import PostureTracker
 
 __all__ = [
-    "Blob", "Features2D", "Pairing", "Posture", "PostureTracker", "RecognitionSettings", "Reconstruction", "Roi",
-    "ViewObservation", "attenuation", "axial_profile", "choose_pairing", "features", "log_background",
+    "Blob", "Features2D", "LogBackground", "Pairing", "Posture", "PostureTracker", "RecognitionSettings",
+    "Reconstruction", "Roi", "ViewObservation", "attenuation", "axial_profile", "choose_pairing", "detect", "features", "log_background",
     "noise_sigma", "pair_candidates", "pairing_rms", "paper_features", "paper_features_from_points", "reconstruct",
     "segment", "weighted_features", "weighted_moments",
 ]

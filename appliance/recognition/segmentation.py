@@ -2,10 +2,11 @@
 
 The detector records ``I = I0(u, v) exp(-integral of mu)``: the open field ``I0`` is not uniform (heel
 effect, vignetting) and quantum noise grows where fewer photons arrive. So the image is turned into
-attenuation ``A = -log(I / B)`` against a background estimate ``B``: a grey closing (a max filter then a
-min filter, wider than any robot) of a downsampled frame removes dark objects and keeps the smooth field.
-It is computed once per full-frame detection and then only sliced, so a tracked frame costs a handful of
-vectorised operations on the region of interest (ROI), never a full-frame pass.
+attenuation ``A = -log(I / B)`` against a background estimate ``B`` (:mod:`.background`: a grey closing
+of a downsampled frame). It is computed once per full-frame detection and then only windowed, so a
+tracked frame costs a handful of vectorised operations on the region of interest (ROI), never a
+full-frame pass; a full-frame detection (:func:`detect`) finds candidates on the coarse image and
+examines only windows around them at full resolution.
 
 Thresholds are relative: candidates stand out of the noise (``detect_sigma`` robust standard
 deviations), the robot's core is the part above ``core_fraction`` of its own peak (which excludes the
@@ -16,11 +17,13 @@ baseline on a support slightly wider than the visible body, so blurred rims and 
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
+from appliance.recognition.background import LogBackground, log_background  # noqa: F401  (re-exported)
 from appliance.recognition.settings import RecognitionSettings
 
 log = logging.getLogger(__name__)
@@ -92,25 +95,7 @@ class Blob:
     clutter: float = 0.0
 
 
-def log_background(image: np.ndarray, scale_px: int = 48, dark_level: float = 0.0) -> np.ndarray:
-    """Full-frame ``log(B)`` (float32) of the open-field background with dark objects removed.
-
-    Downsampling by ``f`` averages ``f^2`` pixels (less noise, cheaper filters); the closing at
-    ``scale_px`` removes anything narrower than that; a blur then smooths the plateau steps of the
-    max/min filters. Cost: a few milliseconds per frame, paid only at full-frame detection.
-    """
-    h, w = image.shape[:2]
-    f = max(1, min(8, scale_px // 12))
-    small = cv2.resize(image.astype(np.float32), (max(1, w // f), max(1, h // f)), interpolation=cv2.INTER_AREA)
-    logs = np.log(np.maximum(small - np.float32(dark_level), 1.0))
-    k = max(3, (scale_px // f) | 1)
-    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
-    closed = cv2.morphologyEx(logs, cv2.MORPH_CLOSE, kernel, borderType=cv2.BORDER_REPLICATE)
-    closed = cv2.GaussianBlur(closed, (0, 0), k / 3.0, borderType=cv2.BORDER_REPLICATE)
-    return cv2.resize(closed, (w, h), interpolation=cv2.INTER_LINEAR)
-
-
-def attenuation(image: np.ndarray, log_bg: np.ndarray, region: Roi, dark_level: float = 0.0) -> np.ndarray:
+def attenuation(image: np.ndarray, log_bg: np.ndarray | LogBackground, region: Roi, dark_level: float = 0.0) -> np.ndarray:
     """``-log(I / B)`` (float32) on ``region``; slices only, no full-frame copy.
 
     ``I`` is the gray level minus the detector's dark level (its output with no X-rays): attenuation
@@ -310,11 +295,13 @@ def _principal(sxx: float, syy: float, sxy: float, n: int) -> tuple[float, float
     return float(ev[1]), float(ev[0]), vec[:, 1]
 
 
-def segment(image: np.ndarray, log_bg: np.ndarray, roi: Roi | None = None,
+def segment(image: np.ndarray, log_bg: np.ndarray | LogBackground, roi: Roi | None = None,
             settings: RecognitionSettings | None = None) -> list[Blob]:
     """Robot candidates in ``roi`` (whole image if None), strongest first; empty if none is plausible.
 
-    ``log_bg`` is :func:`log_background` of a recent frame of the same view (full frame, float32).
+    ``log_bg`` is :func:`log_background` of a recent frame of the same view (or a full-frame float32
+    ``log B``). With ``roi`` None every pixel is examined; :func:`detect` finds the same candidates
+    from the coarse image without that full-resolution pass.
     """
     settings = settings or RecognitionSettings()
     region = roi or Roi.full(image.shape)
@@ -335,5 +322,58 @@ def segment(image: np.ndarray, log_bg: np.ndarray, roi: Roi | None = None,
         blob = _blob_from_component(a, smooth, labels, int(label), stats, region, sigma, settings)
         if blob is not None:
             blobs.append(blob)
+    blobs.sort(key=lambda b: -b.strength)
+    return blobs[:_MAX_CANDIDATES]
+
+def detect(image: np.ndarray, background: LogBackground, settings: RecognitionSettings | None = None) -> list[Blob]:
+    """Robot candidates anywhere in the image, strongest first, without a full-resolution pass.
+
+    Candidates are found on the coarse attenuation image kept by :func:`log_background` (each coarse
+    pixel the mean of ``f x f`` pixels: ``f`` times less noise, ``f^2`` times fewer pixels); each one's
+    strong core (``core_fraction`` of its coarse peak: this leaves out the weaker vessel the robot lies
+    in) gives a window that :func:`segment` then examines at full resolution, exactly as a tracked
+    frame's ROI is. Cores longer than ``max_extent_px`` (a vessel seen lengthwise) are not robots.
+    """
+    settings = settings or RecognitionSettings()
+    a = background.coarse_attenuation
+    # Every other row: a quarter of the median's cost, and still tens of thousands of differences.
+    sigma = noise_sigma(a[::2])
+    if not np.isfinite(sigma) or sigma <= 0:
+        sigma = 1e-3
+    # The coarse image is the area mean, not the blur, of the full one: its noise is sigma itself, and a
+    # thin robot's peak is diluted by the averaging (hence half the full-resolution floor).
+    floor = 0.5 * settings.min_peak_attenuation
+    threshold = max(settings.detect_sigma * sigma, settings.core_fraction * floor)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats((a > threshold).view(np.uint8), connectivity=8)
+    order = np.argsort(-stats[1:, cv2.CC_STAT_AREA])[:_MAX_CANDIDATES * 3] + 1
+    fx, fy = background.fx, background.fy
+    blobs: list[Blob] = []
+    for label in order:
+        x, y, bw, bh = (int(v) for v in stats[label, :4])
+        comp = labels[y:y + bh, x:x + bw] == label
+        values = a[y:y + bh, x:x + bw]
+        peak = float(values[comp].max())
+        if peak < floor:
+            continue
+        core = comp & (values >= settings.core_fraction * peak)
+        ys, xs = np.nonzero(core)
+        extent = max((xs.max() - xs.min() + 1) * fx, (ys.max() - ys.min() + 1) * fy)
+        if extent > settings.max_extent_px:
+            ys, xs = np.nonzero(_core_of(values, comp, peak, settings.core_fraction))
+            extent = max((xs.max() - xs.min() + 1) * fx, (ys.max() - ys.min() + 1) * fy)
+            if extent > settings.max_extent_px:
+                continue
+        # Room for the faint cone beyond the core, the ring and the background fill around the body.
+        margin = settings.roi_margin_px + settings.cone_reach * extent + 2.0 * max(fx, fy)
+        corners = np.array([[(x + xs.min()) * fx, (y + ys.min()) * fy],
+                            [(x + xs.max() + 1) * fx, (y + ys.max() + 1) * fy]])
+        roi = Roi.around(corners, margin, image.shape)
+        if roi is None:
+            continue
+        for blob in segment(image, background, roi, settings):
+            # Neighbouring coarse components may hold the same body.
+            if all(math.hypot(blob.centroid_px[0] - b.centroid_px[0], blob.centroid_px[1] - b.centroid_px[1]) > 2.0
+                   for b in blobs):
+                blobs.append(blob)
     blobs.sort(key=lambda b: -b.strength)
     return blobs[:_MAX_CANDIDATES]

@@ -25,7 +25,7 @@ from appliance.recognition.correspondence import pair_candidates, pairing_rms
 from appliance.recognition.features import Features2D, features
 from appliance.recognition.posture import Posture, ViewObservation
 from appliance.recognition.reconstruction import Reconstruction, reconstruct
-from appliance.recognition.segmentation import Blob, Roi, log_background, segment
+from appliance.recognition.segmentation import Blob, LogBackground, Roi, detect, log_background, segment
 from appliance.recognition.settings import RecognitionSettings
 
 log = logging.getLogger(__name__)
@@ -52,7 +52,7 @@ class PostureTracker:
         self.calibration = calibration
         self.settings = settings or RecognitionSettings()
         self.F = fundamental_matrix(calibration.p, calibration.q)
-        self._log_bg: dict[str, np.ndarray] = {}
+        self._log_bg: dict[str, LogBackground] = {}
         self._track: _Track | None = None
         self._last_search = "none"
 
@@ -169,7 +169,7 @@ class PostureTracker:
         for name in VIEWS:
             self._log_bg[name] = log_background(images[name], self.settings.background_scale_px,
                                                  self.settings.dark_level)
-            candidates[name] = segment(images[name], self._log_bg[name], None, self.settings)
+            candidates[name] = detect(images[name], self._log_bg[name], self.settings)
         timings["segmentation"] += (time.perf_counter_ns() - start) / 1e3
         self._last_search = "full"
         missing = [name for name in VIEWS if not candidates[name]]

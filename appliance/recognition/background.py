@@ -1,0 +1,90 @@
+"""The open-field background of one X-ray view, ``log B``, kept at a coarse scale.
+
+The detector records ``I = I0(u, v) exp(-integral of mu)`` with a non-uniform open field ``I0`` (heel
+effect, vignetting). Its estimate ``B`` is a grey closing (a max filter then a min filter, wider than
+any robot) of an area-downsampled frame, which removes dark objects and keeps the smooth field.
+
+Only the downsampled estimate is stored. A full-resolution window of ``log B`` is interpolated when
+a region of the image is examined, with the same bilinear mapping a full upsampling would use, so a
+full-frame detection never writes a full-frame float image: it reads the 16-bit frame once (the
+area downsampling) and then works on the coarse image and on windows around candidates. The coarse
+attenuation (``closed - log`` of the downsampled frame) is kept too: it is where a full-frame
+detection looks for candidates.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import cv2
+import numpy as np
+
+
+class LogBackground:
+    """``log B`` of one view: coarse arrays plus full-resolution windows on demand.
+
+    Indexing with a pair of slices (``bg[rows, cols]``) returns that window at full resolution
+    (float32), exactly like slicing the bilinearly upsampled image; ``np.asarray(bg)`` returns the
+    whole upsampled image (computed once, for callers that want an array).
+    """
+
+    def __init__(self, coarse_log: np.ndarray, coarse_background: np.ndarray, shape: tuple[int, int]) -> None:
+        #: log of the downsampled frame (dark level removed) and its closing: their difference is the
+        #: coarse attenuation image.
+        self.coarse_log = coarse_log
+        self.coarse = coarse_background
+        self.shape = (int(shape[0]), int(shape[1]))
+        hs, ws = coarse_background.shape
+        #: Full-resolution pixels per coarse pixel along y and x.
+        self.fy = self.shape[0] / hs
+        self.fx = self.shape[1] / ws
+        self._full: np.ndarray | None = None
+
+    @property
+    def coarse_attenuation(self) -> np.ndarray:
+        """``-log(I / B)`` on the coarse grid (float32; robot and vessels positive)."""
+        return self.coarse - self.coarse_log
+
+    @staticmethod
+    def _taps(lo: int, hi: int, factor: float, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        # The upsampling's mapping (OpenCV's INTER_LINEAR): a pixel centre x sits at (x + 0.5) / f - 0.5
+        # on the coarse grid, clamped to its border.
+        s = np.clip((np.arange(lo, hi, dtype=np.float64) + 0.5) / factor - 0.5, 0.0, n - 1)
+        i0 = np.minimum(s.astype(np.int64), max(n - 2, 0))
+        return i0, np.minimum(i0 + 1, n - 1), (s - i0).astype(np.float32)
+
+    def __getitem__(self, key: tuple[slice, slice]) -> np.ndarray:
+        rows, cols = key
+        y0, y1, _ = rows.indices(self.shape[0])
+        x0, x1, _ = cols.indices(self.shape[1])
+        if self._full is not None:
+            return self._full[y0:y1, x0:x1]
+        hs, ws = self.coarse.shape
+        iy0, iy1, wy = self._taps(y0, y1, self.fy, hs)
+        ix0, ix1, wx = self._taps(x0, x1, self.fx, ws)
+        lo, hi = int(ix0.min()), int(ix1.max()) + 1
+        band = self.coarse[:, lo:hi]
+        along_y = band[iy0] * (1.0 - wy)[:, None] + band[iy1] * wy[:, None]
+        return along_y[:, ix0 - lo] * (1.0 - wx) + along_y[:, ix1 - lo] * wx
+
+    def __array__(self, dtype: Any = None, copy: Any = None) -> np.ndarray:
+        if self._full is None:
+            self._full = cv2.resize(self.coarse, (self.shape[1], self.shape[0]), interpolation=cv2.INTER_LINEAR)
+        return self._full if dtype is None else self._full.astype(dtype)
+
+
+def log_background(image: np.ndarray, scale_px: int = 48, dark_level: float = 0.0) -> LogBackground:
+    """``log(B)`` of the open-field background of ``image`` with dark objects removed.
+
+    Downsampling by ``f`` averages ``f^2`` pixels (less noise, cheaper filters; done on the raw 16-bit
+    frame, so no full-frame float copy is made); the closing at ``scale_px`` removes anything narrower
+    than that; a blur then smooths the plateau steps of the max/min filters.
+    """
+    h, w = image.shape[:2]
+    f = max(1, min(8, scale_px // 12))
+    small = cv2.resize(image, (max(1, w // f), max(1, h // f)), interpolation=cv2.INTER_AREA).astype(np.float32)
+    logs = np.log(np.maximum(small - np.float32(dark_level), 1.0))
+    k = max(3, (scale_px // f) | 1)
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+    closed = cv2.morphologyEx(logs, cv2.MORPH_CLOSE, kernel, borderType=cv2.BORDER_REPLICATE)
+    closed = cv2.GaussianBlur(closed, (0, 0), k / 3.0, borderType=cv2.BORDER_REPLICATE)
+    return LogBackground(logs, closed, (h, w))
