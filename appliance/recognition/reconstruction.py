@@ -83,7 +83,7 @@ def ray_line_parameters(view: View, pixels: np.ndarray, point: np.ndarray, direc
 
 
 def fuse_axis(calibration: Calibration, centroid: np.ndarray, feats: dict[str, Features2D], d_tips: np.ndarray,
-              settings: RecognitionSettings) -> tuple[np.ndarray, float]:
+              settings: RecognitionSettings, normals: dict[str, np.ndarray] | None = None) -> tuple[np.ndarray, float]:
     """The 3D axis that best fits both views' axis planes and the triangulated tips, by their precision.
 
     Each view says ``n . d = 0`` for its plane's normal ``n``, to within its 2D axis' angular noise times
@@ -93,13 +93,14 @@ def fuse_axis(calibration: Calibration, centroid: np.ndarray, feats: dict[str, F
     the inverse square root of the next eigenvalue is its standard deviation (radians) in the worst
     direction.
     Far from an epipolar plane the planes dominate (the tips' rim biases do not reach the axis); in it,
-    only the tips can say where in the common plane the axis lies.
+    only the tips can say where in the common plane the axis lies. ``normals``: the views' axis-plane
+    normals when the caller has them already.
     """
     sigma_tips = 0.0
     M = np.zeros((3, 3))
     for name, feat in feats.items():
         view = calibration.views[name]
-        n = axis_plane(view, feat)[:3]
+        n = normals[name] if normals is not None else axis_plane(view, feat)[:3]
         ray = _unit(centroid - view.source_mm)
         sin_a = max(float(np.linalg.norm(np.cross(ray, d_tips))), 0.05)
         angle_sigma = feat.axis_sigma_rad if feat.axis_sigma_rad is not None else 0.01
@@ -125,12 +126,16 @@ def fuse_axis(calibration: Calibration, centroid: np.ndarray, feats: dict[str, F
 
 
 def _hypotheses(calibration: Calibration, feat_p: Features2D, feat_q: Features2D, optimal: bool
-                ) -> dict[str, np.ndarray]:
-    """Triangulated tips (2,3) for cases A and B; row 0 comes from p's tip 0 (its +axis end)."""
-    out = {}
-    for case, order in ((CASE_A, [0, 1]), (CASE_B, [1, 0])):
-        out[case] = triangulate(calibration.p, calibration.q, feat_p.tips, feat_q.tips[order], optimal=optimal)
-    return out
+                ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """The triangulated centroid, and tips (2,3) for cases A and B; row 0 comes from p's tip 0 (its +axis end).
+
+    One call for all five points: triangulation is per point, and its fixed cost (undistortion, the
+    optimal correction, the batched SVD) is most of the time for so few.
+    """
+    uv_p = np.vstack([feat_p.centroid[None, :], feat_p.tips, feat_p.tips])
+    uv_q = np.vstack([feat_q.centroid[None, :], feat_q.tips, feat_q.tips[::-1]])
+    X = triangulate(calibration.p, calibration.q, uv_p, uv_q, optimal=optimal)
+    return X[0], {CASE_A: X[1:3], CASE_B: X[3:5]}
 
 
 def _resolve(pairing: Pairing, hyps: dict[str, np.ndarray], feat_p: Features2D, feat_q: Features2D,
@@ -152,13 +157,12 @@ def reconstruct(calibration: Calibration, F: np.ndarray, feat_p: Features2D, fea
     """The 3D posture from both views' features (see the module docstring for the method)."""
     p, q = calibration.p, calibration.q
     paper = settings.estimator == "paper"
-    centroid = triangulate(p, q, feat_p.centroid, feat_q.centroid, optimal=not paper)[0]
+    centroid, hyps = _hypotheses(calibration, feat_p, feat_q, optimal=not paper)
     pairing = choose_pairing(F, p.undistort_points(feat_p.tips), q.undistort_points(feat_q.tips),
                              settings.ambiguity_px)
     n_p, n_q = axis_plane(p, feat_p)[:3], axis_plane(q, feat_q)[:3]
     cross = np.cross(n_p, n_q)
     plane_angle = math.degrees(math.asin(min(1.0, float(np.linalg.norm(cross)))))
-    hyps = _hypotheses(calibration, feat_p, feat_q, optimal=not paper)
     reasons: list[str] = []
     ambiguous = False
     case: str | None = pairing.case
@@ -197,7 +201,8 @@ def reconstruct(calibration: Calibration, F: np.ndarray, feat_p: Features2D, fea
     assert case is not None
     d = hyps[case][0] - hyps[case][1]
     if not paper and np.all(np.isfinite(d)) and np.linalg.norm(d) > 1e-9:
-        d, sigma = fuse_axis(calibration, centroid, {"p": feat_p, "q": feat_q}, _unit(d), settings)
+        d, sigma = fuse_axis(calibration, centroid, {"p": feat_p, "q": feat_q}, _unit(d), settings,
+                             {"p": n_p, "q": n_q})
         if math.degrees(sigma) > settings.max_axis_sigma_deg and not ambiguous:
             ambiguous = True
             views = [name for name, f in (("p", feat_p), ("q", feat_q))
