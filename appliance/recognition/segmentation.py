@@ -16,6 +16,7 @@ baseline on a support slightly wider than the visible body, so blurred rims and 
 """
 from __future__ import annotations
 
+import functools
 import logging
 import math
 from dataclasses import dataclass
@@ -118,6 +119,7 @@ def noise_sigma(a: np.ndarray) -> float:
     return float(1.4826 * np.median(d) / np.sqrt(2.0))
 
 
+@functools.lru_cache(maxsize=32)
 def _disk(radius: int) -> np.ndarray:
     return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
 
@@ -222,7 +224,10 @@ def _blob_from_component(a: np.ndarray, smooth: np.ndarray, labels: np.ndarray, 
     above = ((s_w - baseline) > level) & capsule
     n, sup_labels = cv2.connectedComponents(above.view(np.uint8), connectivity=8)
     keep = np.unique(sup_labels[core_w & above])
-    mask = np.isin(sup_labels, keep[keep > 0]) | core_w
+    # Labels touching the core, by table look-up (np.isin sorts; a table of n labels is one gather).
+    touching = np.zeros(n, dtype=bool)
+    touching[keep[keep > 0]] = True
+    mask = touching[sup_labels] | core_w
     mask &= _end_limits(s_w, mask, s_w_, float(s_core.min()), float(s_core.max()), 3.0 * sigma_s * np.sqrt(2.0))
     # The support: a rectangle around the body (convex, so each column/row crosses it once).
     s_in, t_in = s_w_[mask], np.abs(t_w_[mask])
@@ -279,9 +284,10 @@ def _end_limits(smooth: np.ndarray, mask: np.ndarray, s: np.ndarray, s_lo: float
         np.maximum.at(peak, bins, values[outside])
         width = np.bincount(bins, minlength=len(peak))
         stop = len(peak)
-        for b in range(len(peak)):
-            if (not np.isfinite(peak[b]) or width[b] > max_width
-                    or (b >= _FADE_STEP and peak[b] > peak[b - _FADE_STEP] - tolerance)):
+        peaks, widths = peak.tolist(), width.tolist()  # Python floats: this loop is scalar work
+        for b in range(len(peaks)):
+            if (not math.isfinite(peaks[b]) or widths[b] > max_width
+                    or (b >= _FADE_STEP and peaks[b] > peaks[b - _FADE_STEP] - tolerance)):
                 stop = b
                 break
         keep &= sign * (s - start) < stop
@@ -290,9 +296,17 @@ def _end_limits(smooth: np.ndarray, mask: np.ndarray, s: np.ndarray, s_lo: float
 
 def _principal(sxx: float, syy: float, sxy: float, n: int) -> tuple[float, float, np.ndarray]:
     """Eigenvalues and major unit axis of a pixel cloud's scatter (sums of centred products over n)."""
-    cov = np.array([[sxx, sxy], [sxy, syy]]) / max(n, 1)
-    ev, vec = np.linalg.eigh(cov)
-    return float(ev[1]), float(ev[0]), vec[:, 1]
+    # Closed form in scalars: a LAPACK call costs more than the arithmetic for a 2x2.
+    k = 1.0 / max(n, 1)
+    a, c, b = float(sxx) * k, float(syy) * k, float(sxy) * k
+    root = math.hypot(a - c, 2.0 * b)
+    l1, l2 = 0.5 * (a + c + root), 0.5 * (a + c - root)
+    # Of the two equivalent forms of the eigenvector, the one without cancellation.
+    vx, vy = (l1 - c, b) if a >= c else (b, l1 - a)
+    norm = math.hypot(vx, vy)
+    if norm < 1e-300:  # isotropic: any direction is principal
+        return l1, l2, np.array([1.0, 0.0])
+    return l1, l2, np.array([vx / norm, vy / norm])
 
 
 def segment(image: np.ndarray, log_bg: np.ndarray | LogBackground, roi: Roi | None = None,
