@@ -19,6 +19,10 @@ import cv2
 import numpy as np
 
 
+#: Margin (px) by which an interpolated window is grown for the next ROIs to reuse.
+_WINDOW_SLACK_PX = 24
+
+
 class LogBackground:
     """``log B`` of one view: coarse arrays plus full-resolution windows on demand.
 
@@ -38,6 +42,9 @@ class LogBackground:
         self.fy = self.shape[0] / hs
         self.fx = self.shape[1] / ws
         self._full: np.ndarray | None = None
+        # The last interpolated window, grown by _WINDOW_SLACK_PX: a tracked robot's ROI moves a few
+        # pixels a frame, so most ROIs are slices of it.
+        self._window: tuple[int, int, int, int, np.ndarray] | None = None
 
     @property
     def coarse_attenuation(self) -> np.ndarray:
@@ -58,6 +65,16 @@ class LogBackground:
         x0, x1, _ = cols.indices(self.shape[1])
         if self._full is not None:
             return self._full[y0:y1, x0:x1]
+        cached = self._window
+        if cached is None or not (cached[0] <= y0 and y1 <= cached[1] and cached[2] <= x0 and x1 <= cached[3]):
+            g = _WINDOW_SLACK_PX
+            wy0, wy1 = max(0, y0 - g), min(self.shape[0], y1 + g)
+            wx0, wx1 = max(0, x0 - g), min(self.shape[1], x1 + g)
+            cached = self._window = (wy0, wy1, wx0, wx1, self._interpolate(wy0, wy1, wx0, wx1))
+        wy0, _, wx0, _, window = cached
+        return window[y0 - wy0:y1 - wy0, x0 - wx0:x1 - wx0]
+
+    def _interpolate(self, y0: int, y1: int, x0: int, x1: int) -> np.ndarray:
         hs, ws = self.coarse.shape
         iy0, iy1, wy = self._taps(y0, y1, self.fy, hs)
         ix0, ix1, wx = self._taps(x0, x1, self.fx, ws)

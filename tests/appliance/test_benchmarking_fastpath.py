@@ -88,3 +88,15 @@ def test_roi_search_reads_the_same_window_either_way(frame: np.ndarray, scene: o
     dense = segment(frame, np.asarray(bg), roi, settings)[0]
     assert lazy.pixel_count == dense.pixel_count
     np.testing.assert_allclose(lazy.centroid_px, dense.centroid_px, atol=1e-3)
+
+
+def test_sliding_windows_reuse_the_cached_one_with_the_same_values() -> None:
+    rng = np.random.default_rng(4)
+    coarse = rng.normal(9.0, 0.2, (64, 64)).astype(np.float32)
+    full = cv2.resize(coarse, (256, 256), interpolation=cv2.INTER_LINEAR)
+    bg = LogBackground(coarse, coarse, (256, 256))
+    for step in range(40):   # a ROI drifting by 3 px a frame, then jumping away and back
+        y0, x0 = 50 + 3 * step if step < 30 else 10, 80 + 2 * step if step < 30 else 200
+        window = bg[y0:y0 + 40, x0:x0 + 50]
+        np.testing.assert_allclose(window, full[y0:y0 + 40, x0:x0 + 50], atol=2e-5)
+        assert window.shape == (40, min(50, 256 - x0))
