@@ -220,7 +220,8 @@ def run_bench(source: FrameSource, frames: int, amplifier_factory: Callable[[Any
     """Measure ``frames`` pairs of ``source`` (see the module docstring); ``amplifier_url`` is a served
     amplifier (pty path or TCP address) for the command stage, skipped when None. ``amplifier_factory``
     builds the driver from an open port (default :class:`drivers.amplifier.Amplifier`, with its
-    heartbeat: rendering a frame and the cold detection come between two commands). ``moment_am2`` is the robot's magnetic moment, for the force allocation."""
+    heartbeat: rendering a frame and the cold detection come between two commands). ``moment_am2`` is
+    the robot's magnetic moment, for the force allocation."""
     from drivers.amplifier import Amplifier
     from drivers.transport import open_serial
 

@@ -7,6 +7,10 @@ and its load, which the table's first line states.
 
     .venv/bin/python benchmarks/pipeline_bench.py [--json FILE] [--frames N] [--size 1024] [--sim-seconds S]
     .venv/bin/python benchmarks/pipeline_bench.py --numba [--size 1024]
+    .venv/bin/python benchmarks/pipeline_bench.py --profile roi|full [--frames N] [--size 1024]
+
+``--profile`` runs the steady-state (``roi``) or cold (``full``) recognition under cProfile and prints
+where the time goes: per recognition function, the share of the total and the time per frame pair.
 
 ``--numba`` measures instead what a compiled kernel would give (numba is not a project dependency:
 ``.venv/bin/python -m pip install numba`` first): the per-pixel work of one view's ROI step (attenuation
@@ -164,13 +168,57 @@ def _roi_of(tracker: Any, image: np.ndarray) -> Any:
     return Roi.around(tracker.calibration.p.project(points), tracker.settings.roi_margin_px, image.shape)
 
 
+def profile(mode: str, frames: int, size: int, top: int = 25) -> int:
+    """cProfile of ``frames`` pairs of ROI tracking or cold detection; the table lists cumulative time per
+    function of the recognition (and the library calls that cost most of their own time)."""
+    import cProfile
+    import pstats
+
+    from appliance.recognition import PostureTracker, RecognitionSettings
+
+    scene = bench.RenderedScene(size)
+    tracker = PostureTracker(scene.calibration, RecognitionSettings(dark_level=scene.dark_level))
+    pairs = scene.pairs()
+    profiler = cProfile.Profile()
+    for n in range(frames + 1):
+        image_p, image_q = next(pairs)
+        if mode == "full":
+            tracker.reset()
+        if n == 0:  # the first frame starts the track (and warms the caches)
+            tracker.process(image_p, image_q, frame=n, t=0.0)
+            continue
+        profiler.enable()
+        tracker.process(image_p, image_q, frame=n, t=n / scene.fps)
+        profiler.disable()
+    stats = pstats.Stats(profiler)
+    raw = stats.stats  # type: ignore[attr-defined]
+    total = sum(tt for (_, _, _), (_, _, tt, _, _) in raw.items())
+    rows = []
+    for (path, line, name), (_, calls, tottime, cumtime, _) in raw.items():
+        own = "appliance/" in path
+        if own or tottime / max(total, 1e-12) > 0.02:
+            where = path.split("appliance/")[-1] if own else Path(path).name
+            rows.append((cumtime if own else tottime, own, f"{where}:{line}({name})", calls))
+    rows.sort(reverse=True)
+    print(f"cProfile, {mode}: {frames} pairs of {size}x{size}; total {1e3 * total / frames:.2f} ms per pair "
+          f"(profiled: slower than the bench)")
+    print(f"{'function':<64} {'calls/pair':>10} {'ms/pair':>8} {'share':>6}")
+    for seconds, own, label, calls in rows[:top]:
+        kind = "" if own else " (own time)"
+        print(f"{(label + kind)[:64]:<64} {calls / frames:10.1f} {1e3 * seconds / frames:8.3f} {seconds / total:6.1%}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     bench.add_arguments(parser)
     parser.add_argument("--numba", action="store_true", help="measure the compiled-kernel option instead (see above)")
+    parser.add_argument("--profile", choices=("roi", "full"), help="profile the recognition instead (see above)")
     args = parser.parse_args(argv)
     if args.numba:
         return numba_option(args.size)
+    if args.profile:
+        return profile(args.profile, min(args.frames, 100), args.size)
     return bench.run(args)
 
 

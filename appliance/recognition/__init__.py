@@ -39,7 +39,7 @@ from appliance.recognition.tracker import PostureTracker
 
 __all__ = [
     "Blob", "Features2D", "LogBackground", "Pairing", "Posture", "PostureTracker", "RecognitionSettings",
-    "Reconstruction", "Roi", "ViewObservation", "attenuation", "axial_profile", "choose_pairing", "detect", "features", "log_background",
-    "noise_sigma", "pair_candidates", "pairing_rms", "paper_features", "paper_features_from_points", "reconstruct",
-    "segment", "weighted_features", "weighted_moments",
+    "Reconstruction", "Roi", "ViewObservation", "attenuation", "axial_profile", "choose_pairing", "detect",
+    "features", "log_background", "noise_sigma", "pair_candidates", "pairing_rms", "paper_features",
+    "paper_features_from_points", "reconstruct", "segment", "weighted_features", "weighted_moments",
 ]

@@ -96,7 +96,8 @@ class Blob:
     clutter: float = 0.0
 
 
-def attenuation(image: np.ndarray, log_bg: np.ndarray | LogBackground, region: Roi, dark_level: float = 0.0) -> np.ndarray:
+def attenuation(image: np.ndarray, log_bg: np.ndarray | LogBackground, region: Roi,
+                dark_level: float = 0.0) -> np.ndarray:
     """``-log(I / B)`` (float32) on ``region``; slices only, no full-frame copy.
 
     ``I`` is the gray level minus the detector's dark level (its output with no X-rays): attenuation
