@@ -167,6 +167,22 @@ def _reach(profile: np.ndarray, s0: float, level: float, direction: int) -> floa
     return -(s0 + j - ((profile[j] - level) / step if step > 0 else 0.0))
 
 
+def _reach_scalar(profile: list[float], s0: float, level: float, direction: int) -> float:
+    """:func:`_reach` on the profile as a list (same arithmetic, for the few levels of every frame)."""
+    n = len(profile)
+    if direction > 0:
+        j = next(i for i in range(n - 1, -1, -1) if profile[i] >= level)
+        if j + 1 >= n:
+            return s0 + j
+        step = profile[j] - profile[j + 1]
+        return s0 + j + ((profile[j] - level) / step if step > 0 else 0.0)
+    j = next(i for i in range(n) if profile[i] >= level)
+    if j == 0:
+        return -(s0 + j)
+    step = profile[j] - profile[j - 1]
+    return -(s0 + j - ((profile[j] - level) / step if step > 0 else 0.0))
+
+
 def weighted_features(blob: Blob, settings: RecognitionSettings | None = None) -> Features2D:
     """Attenuation-weighted PCA, sub-pixel tips from the axial profile, and the head end if it shows."""
     settings = settings or RecognitionSettings()
@@ -184,9 +200,10 @@ def weighted_features(blob: Blob, settings: RecognitionSettings | None = None) -
     axis_sigma = axis_sigma_rad(blob.weights, local_c, v, l1 - l2, blob.sigma)
     plateau = float(profile.max())
     reach: list[dict[float, float]] = [{}, {}]
+    values = profile.tolist()  # the crossings are scalar work: Python floats, no per-level array passes
     for level in _LEVELS:
-        reach[0][level] = _reach(profile, s0, level * plateau, +1)
-        reach[1][level] = _reach(profile, s0, level * plateau, -1)
+        reach[0][level] = _reach_scalar(values, s0, level * plateau, +1)
+        reach[1][level] = _reach_scalar(values, s0, level * plateau, -1)
     ramps = (reach[0][0.2] - reach[0][0.8], reach[1][0.2] - reach[1][0.8])
     head: int | None = None
     for end in (0, 1):

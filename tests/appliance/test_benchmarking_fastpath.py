@@ -100,3 +100,17 @@ def test_sliding_windows_reuse_the_cached_one_with_the_same_values() -> None:
         window = bg[y0:y0 + 40, x0:x0 + 50]
         np.testing.assert_allclose(window, full[y0:y0 + 40, x0:x0 + 50], atol=2e-5)
         assert window.shape == (40, min(50, 256 - x0))
+
+
+def test_scalar_profile_crossings_equal_the_array_ones() -> None:
+    features_module = __import__("sys").modules["appliance.recognition.features"]
+    rng = np.random.default_rng(5)
+    for _ in range(200):
+        n = int(rng.integers(3, 60))
+        profile = np.convolve(rng.random(n), np.ones(3) / 3, mode="same")
+        s0 = float(rng.normal(-20, 5))
+        for fraction in (0.2, 0.25, 0.5, 0.64, 0.8, 1.0):
+            level = fraction * float(profile.max())
+            for direction in (+1, -1):
+                assert features_module._reach_scalar(profile.tolist(), s0, level, direction) == \
+                    features_module._reach(profile, s0, level, direction)
