@@ -12,6 +12,7 @@ conditioned whatever the focal length.
 """
 from __future__ import annotations
 
+import functools
 import logging
 from typing import TYPE_CHECKING, Any
 
@@ -58,6 +59,14 @@ def fundamental_matrix(p: View, q: View) -> np.ndarray:
     t = q.t - R @ p.t
     F = q.K_inv.T @ _skew(t) @ R @ p.K_inv
     return F / np.linalg.norm(F)
+
+
+@functools.lru_cache(maxsize=32)
+def _fundamental_cached(p: View, q: View) -> np.ndarray:
+    """``fundamental_matrix`` per pair of (immutable, identity-hashed) views, for the per-frame path."""
+    F = fundamental_matrix(p, q)
+    F.flags.writeable = False
+    return F
 
 
 def epipolar_lines(F: np.ndarray, uv: Any, *, from_view: str = "p") -> np.ndarray:
@@ -110,7 +119,7 @@ def triangulate(p: View, q: View, uv_p: Any, uv_q: Any, *, optimal: bool = True)
         return np.zeros((0, 3))
     a, b = p.undistort_points(a), q.undistort_points(b)
     if optimal:
-        a, b = _correct(fundamental_matrix(p, q), a, b)
+        a, b = _correct(_fundamental_cached(p, q), a, b)
     # DLT in normalised camera coordinates with the world scaled by s: P' = [R | t/s] keeps the
     # homogeneous column the same size as the rotation part, so the SVD is well conditioned.
     s = max(float(np.linalg.norm(p.t)), float(np.linalg.norm(q.t)), 1.0)

@@ -72,12 +72,15 @@ class View:
         if self.t.shape != (3,):
             raise ValueError(f"view {self.name}: t must have 3 elements, got {self.t.shape}")
         object.__setattr__(self, "_K_inv", _frozen(np.linalg.inv(self.K)))
+        # Views are immutable, so what every projection asks for is computed once here.
+        object.__setattr__(self, "_has_distortion", bool(np.any(self.dist != 0.0)))
+        object.__setattr__(self, "_P", _frozen(self.K @ np.hstack([self.R, self.t[:, None]])))
 
     # -- derived quantities -------------------------------------------------------------------------
     @property
     def P(self) -> np.ndarray:
-        """The 3x4 projection matrix ``K [R | t]`` (ideal, undistorted pixels)."""
-        return self.K @ np.hstack([self.R, self.t[:, None]])
+        """The 3x4 projection matrix ``K [R | t]`` (ideal, undistorted pixels); read-only."""
+        return self._P  # type: ignore[attr-defined, no-any-return]
 
     @property
     def source_mm(self) -> np.ndarray:
@@ -91,7 +94,7 @@ class View:
 
     @property
     def has_distortion(self) -> bool:
-        return bool(np.any(self.dist != 0.0))
+        return self._has_distortion  # type: ignore[attr-defined, no-any-return]
 
     @property
     def K_inv(self) -> np.ndarray:
