@@ -41,8 +41,10 @@ def ensure_environment() -> Path:
         venv.EnvBuilder(with_pip=True).create(VENV)
     print("dev.py: installing the project and its test tools into .venv (first run only)", flush=True)
     pip = [str(python), "-m", "pip", "--disable-pip-version-check", "install", "--quiet"]
-    subprocess.run([*pip, "--upgrade", "pip"], check=True)
-    subprocess.run([*pip, "--editable", f"{ROOT}[test]"], check=True)
+    # The build backend's notes about editable installs are for packagers, not for someone starting the bench.
+    quiet = {**os.environ, "PYTHONWARNINGS": "ignore"}
+    subprocess.run([*pip, "--upgrade", "pip"], check=True, env=quiet)
+    subprocess.run([*pip, "--editable", f"{ROOT}[test]"], check=True, env=quiet)
     STAMP.write_text(digest + "\n")
     return python
 
