@@ -55,6 +55,15 @@ class RecognitionSettings(StrictModel):
     min_attenuation_per_mm: float = Field(0.1, ge=0)
     #: Largest aspect ratio sqrt(l1/l2) of a robot (a contrast-filled vessel is longer and thinner).
     max_elongation: float = Field(40.0, gt=1)
+    #: Weakest plausible robot material along the path of the X-rays (per mm): the peak attenuation of the
+    #: view that sees the reconstructed rod most side-on over its chord there (its width over the sine of the
+    #: ray-axis angle). The weakest robot of Table 1 (#6, polymer around a magnet) measures >= 0.40/mm on
+    #: the accuracy benchmark, diluted iodine 0.05-0.08/mm (up to ~0.2/mm where a vessel crosses itself in
+    #: projection); a vessel seen foreshortened in one view is strong there, never per mm of path.
+    min_path_attenuation_per_mm: float = Field(0.25, ge=0)
+    #: Largest reconstructed length over width of a robot (Table 1: 2 to 10, measured up to 13 with blur):
+    #: longer is a stretch of vessel.
+    max_length_over_width: float = Field(20.0, gt=1)
 
     # -- features -------------------------------------------------------------------------------------
     #: The 2D axis is the principal axis of the weights capped at this fraction of the peak (1: uncapped).

@@ -105,6 +105,10 @@ class PostureTracker:
                 float(np.linalg.norm(f.tips[0] - f.tips[1])) for f in feats.values())):
             failure = (f"the robot images' ends do not correspond in either pairing (RMS epipolar distance "
                        f"{tips_rms:.1f} px); one view's blob is not (only) the robot")
+        else:
+            failure = self._not_robot_like(rec, blobs) or self._cut_by_edge(blobs)
+            if failure is not None:
+                log.debug("frame %d rejected: %s", frame, failure)
         if failure is not None:
             # The two blobs are not images of one object: reporting a pose would be inventing one.
             self._lose()
@@ -248,6 +252,60 @@ class PostureTracker:
             else:
                 strongest = max(strongest, mu)
         return kept, strongest
+
+    def _not_robot_like(self, rec: Reconstruction, blobs: dict[str, Blob]) -> str | None:
+        """Why the reconstructed object is not a dense rod (None if it is one).
+
+        A rod of diameter ``w`` whose axis makes the angle ``theta`` with a view's central ray is crossed
+        by that ray over ``w / sin(theta)``: the view that sees it most side-on gives its attenuation per
+        mm of path, which for metal is far above contrast medium's. The per-width test of the candidate
+        pairing cannot tell a vessel seen foreshortened (strong, short, as wide as its lumen) from the
+        robot; the path can. A robot is also of bounded length over width. (The two views' widths are
+        not compared here: where the robot crosses a vessel one view's width is unreliable, and such
+        frames are flagged by the clutter test instead.)
+        """
+        s = self.settings
+        # Widths in mm at the reconstructed centroid (magnification from the source distance).
+        widths: dict[str, float] = {}
+        for name, blob in blobs.items():
+            view = self.calibration.views[name]
+            widths[name] = blob.width_px * float(np.linalg.norm(rec.centroid - view.source_mm)) / float(view.K[0, 0])
+        width = 0.5 * (widths["p"] + widths["q"])
+        if rec.length_mm is not None and rec.length_mm > s.max_length_over_width * width:
+            return (f"no robot-like object in view p and q: the object seen is {rec.length_mm:.1f} mm long and "
+                    f"{width:.1f} mm wide, longer than any robot (a stretch of vessel)")
+        directions = [rec.direction] if rec.direction is not None else list(rec.candidates or [])
+        best: tuple[float, str] | None = None
+        for direction in directions:
+            # Per direction hypothesis: the view seeing the axis most side-on, and the rod's chord there.
+            sines = {}
+            for name in blobs:
+                ray = rec.centroid - self.calibration.views[name].source_mm
+                cosine = abs(float(np.dot(ray, direction))) / float(np.linalg.norm(ray))
+                sines[name] = math.sqrt(max(0.0, 1.0 - cosine * cosine))
+            side = max(sines, key=lambda n: sines[n])
+            mu = blobs[side].peak * max(sines[side], 1e-3) / max(widths[side], 1e-6)
+            if best is None or mu > best[0]:
+                best = (mu, side)
+        if best is not None and best[0] < s.min_path_attenuation_per_mm:
+            return (f"no robot-like object in view {'p' if best[1] == 'q' else 'q'}: the object attenuates "
+                    f"{best[0]:.2f}/mm of path in view {best[1]} (seen side-on there), like contrast medium, "
+                    f"not like the robot (>= {s.min_path_attenuation_per_mm:g}/mm)")
+        return None
+
+    def _cut_by_edge(self, blobs: dict[str, Blob]) -> str | None:
+        """Why the robot's image is cut by a detector's edge (None if it is whole in both views).
+
+        A robot partly outside a view's field leaves a shortened, off-centre image: its centroid and
+        length would be invented from the part that is seen.
+        """
+        for name, blob in blobs.items():
+            w, h = self.calibration.views[name].image_size
+            win, mask = blob.window, blob.mask
+            if ((win.x0 == 0 and mask[:, 0].any()) or (win.y0 == 0 and mask[0].any())
+                    or (win.x1 == w and mask[:, -1].any()) or (win.y1 == h and mask[-1].any())):
+                return f"the robot's image reaches the edge of view {name}: it is partly outside the field"
+        return None
 
     def _centroid_mismatch_px(self, feats: dict[str, Features2D]) -> float:
         cp = self.calibration.p.undistort_points(feats["p"].centroid)
