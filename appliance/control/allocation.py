@@ -140,7 +140,8 @@ class CurrentAllocator:
             # inside the (convex) current and power limits stays inside them.
             target = scale * ideal
             step = target - previous
-            with np.errstate(divide="ignore", invalid="ignore"):
+            # A channel with (almost) no step allows any fraction: +inf, also when budget/step overflows.
+            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
                 fractions = np.where(np.abs(step) > 0.0, budget / np.abs(step), np.inf)
             fraction = float(min(1.0, np.min(fractions)))
             currents = previous + fraction * step
