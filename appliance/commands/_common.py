@@ -5,7 +5,7 @@ import argparse
 import sys
 from contextlib import contextmanager
 from pathlib import Path
-from typing import IO, Iterator
+from typing import IO, Callable, Iterator
 
 from appliance.errors import InputDataError
 from drivers.biplane_folder import PLANES
@@ -33,15 +33,21 @@ def non_negative_float(text: str) -> float:
     return value
 
 
-def count(text: str) -> int:
-    """argparse type: a whole number >= 1."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
-    return value
+def integer_at_least(minimum: int) -> Callable[[str], int]:
+    """argparse type factory: a whole number >= ``minimum``."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be at least {minimum}, got {value}")
+        return value
+    return parse
+
+
+#: argparse type: a whole number >= 1.
+count = integer_at_least(1)
 
 
 @contextmanager

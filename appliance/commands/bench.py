@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from appliance.commands._common import integer_at_least, non_negative_float
 
 NAME = "bench"
 HELP = "measure recognition, control and the amplifier command per stage against an OpenCV baseline and the memory floor"
@@ -33,44 +34,30 @@ VESSEL_ATTENUATION_PER_MM = 0.06
 FPS = 30.0
 
 
-def _count(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if value < 2:
-        raise argparse.ArgumentTypeError(f"must be at least 2, got {value}")
-    return value
+
 
 
 def _size(text: str) -> int:
-    value = _count(text)
+    value = integer_at_least(2)(text)
     if not 64 <= value <= 4096:
         raise argparse.ArgumentTypeError(f"image size must be 64..4096 px, got {value}")
     return value
 
 
-def _seconds(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {value:g}")
-    return value
+
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", metavar="FILE", type=Path, help="also write every figure of the table as JSON")
-    parser.add_argument("--frames", metavar="N", type=_count, default=300,
+    parser.add_argument("--frames", metavar="N", type=integer_at_least(2), default=300,
                         help="biplane pairs to measure (default 300: p99 is then the 3rd slowest)")
     parser.add_argument("--size", metavar="PX", type=_size, default=1024,
                         help="square detector size in pixels (default 1024)")
     parser.add_argument("--robot", metavar="ID", type=int, default=1, help="robot of Table 1 (default 1)")
-    parser.add_argument("--speed", metavar="MM_S", type=_seconds, default=8.0,
+    parser.add_argument("--speed", metavar="MM_S", type=non_negative_float, default=8.0,
                         help="robot speed along the path, mm/s (default 8)")
     parser.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
-    parser.add_argument("--sim-seconds", metavar="S", type=_seconds, default=3.0,
+    parser.add_argument("--sim-seconds", metavar="S", type=non_negative_float, default=3.0,
                         help="simulated seconds of the closed loop of config/sim.yaml (0: skip; default 3)")
     parser.add_argument("--no-amplifier", action="store_true",
                         help="leave out the amplifier command (the loop then ends at the allocation)")

@@ -27,11 +27,10 @@ import math
 import sys
 import time
 from collections import Counter
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
+from appliance.commands._common import output_stream
 
 NAME = "replay"
 HELP = "re-run recognition on a session recording's frames and compare with the recorded postures"
@@ -180,19 +179,6 @@ def _text(summary: dict[str, Any]) -> str:
 
 
 # ------------------------------------------------------------------------------------- the command
-@contextmanager
-def _output(path: Path | None) -> Iterator[IO[str]]:
-    from appliance.errors import InputDataError
-
-    if path is None:
-        yield sys.stdout
-        return
-    try:
-        stream = path.open("w", encoding="utf-8")
-    except OSError as err:
-        raise InputDataError(f"{path}: cannot write the comparison ({err.strerror or err})") from err
-    with stream:
-        yield stream
 
 
 def replay(reader: Any, tracker: Any, out: IO[str]) -> dict[str, Any]:
@@ -245,7 +231,7 @@ def run(args: argparse.Namespace) -> int:
     calibration = Calibration.from_dict(reader.calibration, source=f"{args.recording}: /calibration")
     settings = RecognitionSettings(estimator=args.estimator) if args.estimator else RecognitionSettings()
     tracker = PostureTracker(calibration, settings=settings)
-    with _output(args.out) as out:
+    with output_stream(args.out, "comparison") as out:
         summary = replay(reader, tracker, out)
     if args.summary is not None:
         try:

@@ -14,25 +14,19 @@ import sys
 import time
 from pathlib import Path
 from typing import Any
+from appliance.commands._common import positive_float
 
 NAME = "sim"
 HELP = "run the closed loop on the simulated bench (every device a loopback fake) and report how well it followed the path"
 
 
-def _positive(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"must be positive, got {value:g}")
-    return value
+
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", metavar="FILE", type=Path,
                         help="session file (default: config/sim.yaml, every device loopback)")
-    parser.add_argument("--seconds", metavar="S", type=_positive,
+    parser.add_argument("--seconds", metavar="S", type=positive_float,
                         help="simulated time limit (default: the session's simulation.max_seconds); "
                              "the run also ends when the robot reaches the end of the path")
     parser.add_argument("--out", metavar="DIR", type=Path,

@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from appliance.commands._common import count
 
 NAME = "validate"
 HELP = "OTS validation session: per robot and posture, errors of the recognised posture against the tracker"
@@ -180,14 +181,7 @@ def _robot_choice(text: str) -> str:
     raise argparse.ArgumentTypeError(f"expected a robot number, numbers separated by commas, or 'all', got {text!r}")
 
 
-def _positive(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError as err:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from err
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected at least 1, got {value}")
-    return value
+
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -195,15 +189,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--robot", type=_robot_choice, metavar="N|all",
                         help="robot number of the catalogue (or several: 1,4), or 'all' (default: all in simulation, "
                              "the session's robot on a bench)")
-    parser.add_argument("--postures", type=_positive, default=3, metavar="K", help="postures per robot (default 3)")
-    parser.add_argument("--samples", type=_positive, default=30, metavar="N",
+    parser.add_argument("--postures", type=count, default=3, metavar="K", help="postures per robot (default 3)")
+    parser.add_argument("--samples", type=count, default=30, metavar="N",
                         help="biplane pairs per posture (default 30, the protocol's minimum)")
     parser.add_argument("--out", type=Path, default=Path("validation"), metavar="DIR",
                         help="report folder (default ./validation)")
     parser.add_argument("--holder", type=Path, metavar="YAML",
                         help="holder calibration: tool_in_robot (default in simulation: the holder as designed)")
     parser.add_argument("--pointer-rom", type=Path, metavar="ROM", help="bench: the tracked pointer's tool definition")
-    parser.add_argument("--fiducials", type=_positive, metavar="N", help="bench: fiducials on the registration phantom")
+    parser.add_argument("--fiducials", type=count, metavar="N", help="bench: fiducials on the registration phantom")
 
 
 def _holder(args: argparse.Namespace, session: Any) -> Any:

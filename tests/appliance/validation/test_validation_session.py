@@ -133,7 +133,7 @@ def test_bad_requests_fail_with_clear_messages(tmp_path: Path, capsys: pytest.Ca
     assert "needs the optical tracker" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         cli.main(["validate", "--samples", "0"])
-    assert "expected at least 1" in capsys.readouterr().err
+    assert "--samples: must be at least 1, got 0" in capsys.readouterr().err
 
 
 def test_operator_lab_prompts_each_step() -> None:
