@@ -12,6 +12,7 @@ never with a made-up pose.
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
@@ -24,13 +25,15 @@ from appliance.geometry import Calibration, epipolar_distance_px, fundamental_ma
 from appliance.recognition.correspondence import pair_candidates, pairing_rms
 from appliance.recognition.features import Features2D, features
 from appliance.recognition.posture import Posture, ViewObservation
-from appliance.recognition.reconstruction import Reconstruction, reconstruct
+from appliance.recognition.reconstruction import Reconstruction, ray_line_parameters, reconstruct
 from appliance.recognition.segmentation import Blob, LogBackground, Roi, detect, log_background, segment
 from appliance.recognition.settings import RecognitionSettings
 
 log = logging.getLogger(__name__)
 
 VIEWS = ("p", "q")
+#: The clean view must see the axis at least this far from end-on (sine) to place the centroid along it.
+_MIN_DECLUTTER_SIN = 0.3
 
 
 @dataclass
@@ -115,6 +118,7 @@ class PostureTracker:
             posture = Posture.lost(frame, t, failure)
             posture.timings_us = timings
             return posture
+        rec = self._declutter(rec, blobs)
         posture = self._posture(frame, t, rec, blobs)
         posture.timings_us = timings
         self._remember(posture)
@@ -292,6 +296,40 @@ class PostureTracker:
                     f"{best[0]:.2f}/mm of path in view {best[1]} (seen side-on there), like contrast medium, "
                     f"not like the robot (>= {s.min_path_attenuation_per_mm:g}/mm)")
         return None
+
+    def _declutter(self, rec: Reconstruction, blobs: dict[str, Blob]) -> Reconstruction:
+        """The centroid placed along the axis by the clean view alone when the other overlaps a vessel.
+
+        Where the robot overlaps a vessel in one view, its blob there merges with the vessel and its
+        centroid slides along the axis; the 3D axis (from both views' axis planes) and the position
+        across it are hardly affected. The clean view's centroid ray then fixes where along the axis
+        the centroid is, provided that view sees the axis well away from end-on.
+        """
+        s = self.settings
+        d = rec.direction
+        cluttered = [name for name in VIEWS if blobs[name].clutter > s.max_clutter]
+        if d is None or len(cluttered) != 1:
+            return rec
+        clean = "q" if cluttered[0] == "p" else "p"
+        view, feat = self.calibration.views[clean], rec.view_features[clean]
+        ray = rec.centroid - view.source_mm
+        z = float(np.linalg.norm(ray))
+        cosine = float(np.dot(ray, d)) / z
+        sin2 = 1.0 - cosine * cosine
+        if sin2 < _MIN_DECLUTTER_SIN ** 2:
+            return rec
+        # The clean view's weighted centroid, less its perspective bias (as perspective_corrected_centroid).
+        mm_per_px = z / float(view.K[0, 0])
+        shift = -3.0 * cosine * feat.eigenvalues[0] * mm_per_px ** 2 / sin2 / z
+        seen, true = view.project(np.vstack([rec.centroid + shift * d, rec.centroid]))
+        pixel = feat.centroid + (true - seen)
+        b, _ = ray_line_parameters(view, pixel[None, :], rec.centroid, d)
+        # ... and across it, the point of the clean ray nearest the axis: the triangulation had spread the
+        # cluttered view's error over both rays.
+        origins, rays = view.rays(pixel[None, :])
+        along = rec.centroid + float(b[0]) * d - origins[0]
+        centroid = origins[0] + float(np.dot(along, rays[0])) * rays[0]
+        return dataclasses.replace(rec, centroid=centroid)
 
     def _cut_by_edge(self, blobs: dict[str, Blob]) -> str | None:
         """Why the robot's image is cut by a detector's edge (None if it is whole in both views).
