@@ -20,6 +20,8 @@ axis from them, as in the seed paper.
 """
 from __future__ import annotations
 
+import dataclasses
+
 import logging
 import math
 from dataclasses import dataclass, field
@@ -306,13 +308,21 @@ def _finish_weighted(calibration: Calibration, centroid: np.ndarray, d: np.ndarr
         plus_index = {k: 1 - v for k, v in plus_index.items()}
     # Re-estimate each view's tips with the head's (conical) end model where the head is known, then
     # place both ends on the 3D axis.
+    cone_end = None if head_identified else _likely_cone_end(views, plus_index, settings)
     sums = np.zeros(2)
     weights = np.zeros(2)
     view_tips: dict[str, np.ndarray] = {}
     final: dict[str, Features2D] = {}
     for name, (view, feat) in views.items():
         plus = plus_index[name]
-        feat = feat.with_head(plus if head_identified else None)
+        if head_identified:
+            feat = feat.with_head(plus)
+        elif cone_end is not None:
+            # Tips only: the end whose profile ramps in both views is measured as a cone (apex), the other
+            # as a step; the head is still reported as not identified.
+            feat = dataclasses.replace(feat.with_head(plus if cone_end == 0 else 1 - plus), head_index=None)
+        else:
+            feat = feat.with_head(None)
         final[name] = feat
         ordered = feat.tips[[plus, 1 - plus]]
         view_tips[name] = ordered
@@ -324,6 +334,30 @@ def _finish_weighted(calibration: Calibration, centroid: np.ndarray, d: np.ndarr
     reproj = _reprojection(calibration, centroid, tips, final["p"], final["q"], view_tips)
     return Reconstruction(centroid, d, tips, head_identified, float(b_plus - b_minus), reproj, pairing, plane_angle,
                           ambiguous, reasons, None, view_tips, final)
+
+
+def _likely_cone_end(views: dict[str, tuple[View, Features2D]], plus_index: dict[str, int],
+                     settings: RecognitionSettings) -> int | None:
+    """Which 3D end (0: +d, 1: -d) both views' axial profiles show as a ramp rather than a step, if any.
+
+    Below the head-identification ratio a view's evidence is weak, but where both views see the same 3D
+    end ramp longer (each by ``tip_cone_ratio``), a cone there is far likelier than a flat end: its apex
+    is placed by the cone model instead of at the profile's half height (which is short of the apex by
+    ~0.7 of the cone's length).
+    """
+    ends = []
+    for name, (_, feat) in views.items():
+        if feat.ramp_px is None:
+            return None
+        plus = plus_index[name]
+        ramp_plus, ramp_minus = feat.ramp_px[plus], feat.ramp_px[1 - plus]
+        if ramp_plus >= settings.tip_cone_ratio * max(ramp_minus, 1e-6) and ramp_plus - ramp_minus >= settings.head_min_ramp_px:
+            ends.append(0)
+        elif ramp_minus >= settings.tip_cone_ratio * max(ramp_plus, 1e-6) and ramp_minus - ramp_plus >= settings.head_min_ramp_px:
+            ends.append(1)
+        else:
+            return None
+    return ends[0] if len(set(ends)) == 1 else None
 
 
 def _reprojection(calibration: Calibration, centroid: np.ndarray, tips: np.ndarray, feat_p: Features2D,

@@ -104,6 +104,9 @@ class RecognitionSettings(StrictModel):
     #: flat end's, and longer by at least ``head_min_ramp_px``.
     head_ramp_ratio: float = Field(1.6, gt=1)
     head_min_ramp_px: float = Field(1.0, ge=0)
+    #: With the head not identified, an end whose ramp is this many times the other's in both views is
+    #: still measured as a cone for its tip (not reported as the head).
+    tip_cone_ratio: float = Field(1.25, gt=1)
     #: When the views disagree on the head, the view seeing the axis more side-on decides if the other's
     #: sine of the ray-axis angle is below this fraction of its own (foreshortened view: weaker evidence).
     head_foreshortening: float = Field(0.5, gt=0, le=1)
