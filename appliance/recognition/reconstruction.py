@@ -341,19 +341,21 @@ def _likely_cone_end(views: dict[str, tuple[View, Features2D]], plus_index: dict
     """Which 3D end (0: +d, 1: -d) both views' axial profiles show as a ramp rather than a step, if any.
 
     Below the head-identification ratio a view's evidence is weak, but where both views see the same 3D
-    end ramp longer (each by ``tip_cone_ratio``), a cone there is far likelier than a flat end: its apex
+    end ramp longer (each by ``tip_cone_ratio`` and half ``head_min_ramp_px``), a cone there is far likelier than a flat end: its apex
     is placed by the cone model instead of at the profile's half height (which is short of the apex by
     ~0.7 of the cone's length).
     """
     ends = []
+    # Two agreeing views are stronger evidence than one: half the single view's margin each.
+    margin = 0.5 * settings.head_min_ramp_px
     for name, (_, feat) in views.items():
         if feat.ramp_px is None:
             return None
         plus = plus_index[name]
         ramp_plus, ramp_minus = feat.ramp_px[plus], feat.ramp_px[1 - plus]
-        if ramp_plus >= settings.tip_cone_ratio * max(ramp_minus, 1e-6) and ramp_plus - ramp_minus >= settings.head_min_ramp_px:
+        if ramp_plus >= settings.tip_cone_ratio * max(ramp_minus, 1e-6) and ramp_plus - ramp_minus >= margin:
             ends.append(0)
-        elif ramp_minus >= settings.tip_cone_ratio * max(ramp_plus, 1e-6) and ramp_minus - ramp_plus >= settings.head_min_ramp_px:
+        elif ramp_minus >= settings.tip_cone_ratio * max(ramp_plus, 1e-6) and ramp_minus - ramp_plus >= margin:
             ends.append(1)
         else:
             return None
