@@ -20,11 +20,9 @@ axis from them, as in the seed paper.
 """
 from __future__ import annotations
 
-import dataclasses
-
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -320,7 +318,7 @@ def _finish_weighted(calibration: Calibration, centroid: np.ndarray, d: np.ndarr
         elif cone_end is not None:
             # Tips only: the end whose profile ramps in both views is measured as a cone (apex), the other
             # as a step; the head is still reported as not identified.
-            feat = dataclasses.replace(feat.with_head(plus if cone_end == 0 else 1 - plus), head_index=None)
+            feat = replace(feat.with_head(plus if cone_end == 0 else 1 - plus), head_index=None)
         else:
             feat = feat.with_head(None)
         final[name] = feat
@@ -341,9 +339,9 @@ def _likely_cone_end(views: dict[str, tuple[View, Features2D]], plus_index: dict
     """Which 3D end (0: +d, 1: -d) both views' axial profiles show as a ramp rather than a step, if any.
 
     Below the head-identification ratio a view's evidence is weak, but where both views see the same 3D
-    end ramp longer (each by ``tip_cone_ratio`` and half ``head_min_ramp_px``), a cone there is far likelier than a flat end: its apex
-    is placed by the cone model instead of at the profile's half height (which is short of the apex by
-    ~0.7 of the cone's length).
+    end ramp longer (each by ``tip_cone_ratio`` and half ``head_min_ramp_px``), a cone there is far
+    likelier than a flat end: its apex is placed by the cone model instead of at the profile's half
+    height (which falls short of the apex by ~0.7 of the cone's length).
     """
     ends = []
     # Two agreeing views are stronger evidence than one: half the single view's margin each.

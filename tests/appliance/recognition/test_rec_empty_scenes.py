@@ -2,8 +2,12 @@
 robot that vanishes or leaves the field of view must give ``ok: false`` with a reason, never a pose on
 the vessel. Small images in the simulated bench's geometry (500 mm source-object distance, 150 x 130
 mm field, plane q 15 degrees down, both C-arms turned by -45 degrees), where vessels seen
-foreshortened or crossing themselves in projection are dense enough to pass a per-width test."""
+foreshortened or crossing themselves in projection are dense enough to pass a per-width test.
+Also the robot against the vessel: a centroid placed by the clean view where the other overlaps the
+vessel, and a cone end's tip found from both views' profiles when the head is not identified."""
 from __future__ import annotations
+
+import itertools
 
 import numpy as np
 import pytest
@@ -41,7 +45,7 @@ def _calibration(views: dict[str, TrueView]) -> Calibration:
 
 def _densify(points: np.ndarray, step_mm: float = 1.0) -> np.ndarray:
     out = [points[0]]
-    for a, b in zip(points[:-1], points[1:]):
+    for a, b in itertools.pairwise(points):
         n = max(1, int(np.linalg.norm(b - a) / step_mm))
         out.extend(a + (b - a) * k / n for k in range(1, n + 1))
     return np.asarray(out)
@@ -179,3 +183,31 @@ def test_centroid_over_a_vessel_in_one_view_comes_from_the_clean_view(views: dic
     assert len(errors["ours"]) >= 6, "too few one-view overlaps to compare"
     rms = {k: float(np.sqrt(np.mean(np.square(v)))) for k, v in errors.items()}
     assert rms["ours"] < 0.6 * rms["blind"], rms
+
+
+def test_cone_end_is_found_from_both_views_profiles_when_the_head_is_not_identified() -> None:
+    """Each view's ramp ratio (1.4) is below head identification's 1.6, but both views ramp longer at
+    the same 3D end: that end is measured as a cone (apex beyond the half-height point)."""
+    from appliance.recognition.features import Features2D
+    from appliance.recognition.reconstruction import _likely_cone_end
+
+    calibration = _calibration(_sim_views(IMAGE_SIZE))
+    reach = {0.2: 10.0, 0.25: 9.6, 0.5: 8.0, 0.64: 7.2, 0.8: 6.0}
+    flat = {0.2: 8.6, 0.25: 8.5, 0.5: 8.0, 0.64: 7.8, 0.8: 7.4}
+
+    def feat(ramps: tuple[float, float]) -> Features2D:
+        reaches = (reach, flat) if ramps[0] > ramps[1] else (flat, reach)
+        return Features2D(np.zeros(2), np.array([1.0, 0.0]), (30.0, 1.0), np.zeros((2, 2)), 50, None, ramps,
+                          reaches, 0.01)
+
+    views = {"p": (calibration.p, feat((4.0, 1.2))), "q": (calibration.q, feat((1.2, 4.0)))}
+    # q's +axis end is the 3D -d end, so both views point at the 3D +d end.
+    assert _likely_cone_end(views, {"p": 0, "q": 1}, SETTINGS) == 0
+    # The views disagree in 3D: no end is called a cone.
+    assert _likely_cone_end(views, {"p": 0, "q": 0}, SETTINGS) is None
+    # A weak ratio in one view: no cone either.
+    weak = {"p": views["p"], "q": (calibration.q, feat((1.2, 1.4)))}
+    assert _likely_cone_end(weak, {"p": 0, "q": 1}, SETTINGS) is None
+    # The cone model puts the tip beyond the half-height point.
+    f = views["p"][1]
+    assert f.tip_distance(0, conical=True) > f.tip_distance(0, conical=False) + 1.0
