@@ -7,12 +7,11 @@ estimate is a slice of the one computed at the last full-frame detection, so a s
 touches only a few thousand pixels per view. When the ROI search fails (nothing plausible, the blob
 reaches the ROI's edge, or it is far from the prediction), the frame falls back to a full-frame
 detection, where the background is re-estimated and candidate blobs of the two views are paired by
-the epipolar constraint. A frame where that fails too is reported lost (``ok: false`` with a reason),
-never with a made-up pose.
+the epipolar constraint. A frame where that fails too, or whose object is not robot-like
+(:mod:`.plausibility`), is reported lost (``ok: false`` with a reason), never with a made-up pose.
 """
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import time
@@ -24,16 +23,15 @@ from appliance.errors import InputDataError
 from appliance.geometry import Calibration, epipolar_distance_px, fundamental_matrix, triangulate
 from appliance.recognition.correspondence import pair_candidates, pairing_rms
 from appliance.recognition.features import Features2D, features
+from appliance.recognition.plausibility import cut_by_edge, declutter, not_robot_like
 from appliance.recognition.posture import Posture, ViewObservation
-from appliance.recognition.reconstruction import Reconstruction, ray_line_parameters, reconstruct
+from appliance.recognition.reconstruction import Reconstruction, reconstruct
 from appliance.recognition.segmentation import Blob, LogBackground, Roi, detect, log_background, segment
 from appliance.recognition.settings import RecognitionSettings
 
 log = logging.getLogger(__name__)
 
 VIEWS = ("p", "q")
-#: The clean view must see the axis at least this far from end-on (sine) to place the centroid along it.
-_MIN_DECLUTTER_SIN = 0.3
 
 
 @dataclass
@@ -109,7 +107,8 @@ class PostureTracker:
             failure = (f"the robot images' ends do not correspond in either pairing (RMS epipolar distance "
                        f"{tips_rms:.1f} px); one view's blob is not (only) the robot")
         else:
-            failure = self._not_robot_like(rec, blobs) or self._cut_by_edge(blobs)
+            failure = (not_robot_like(self.calibration, rec, blobs, self.settings)
+                       or cut_by_edge(self.calibration, blobs))
             if failure is not None:
                 log.debug("frame %d rejected: %s", frame, failure)
         if failure is not None:
@@ -118,7 +117,7 @@ class PostureTracker:
             posture = Posture.lost(frame, t, failure)
             posture.timings_us = timings
             return posture
-        rec = self._declutter(rec, blobs)
+        rec = declutter(self.calibration, rec, blobs, self.settings)
         posture = self._posture(frame, t, rec, blobs)
         posture.timings_us = timings
         self._remember(posture)
@@ -256,94 +255,6 @@ class PostureTracker:
             else:
                 strongest = max(strongest, mu)
         return kept, strongest
-
-    def _not_robot_like(self, rec: Reconstruction, blobs: dict[str, Blob]) -> str | None:
-        """Why the reconstructed object is not a dense rod (None if it is one).
-
-        A rod of diameter ``w`` whose axis makes the angle ``theta`` with a view's central ray is crossed
-        by that ray over ``w / sin(theta)``: the view that sees it most side-on gives its attenuation per
-        mm of path, which for metal is far above contrast medium's. The per-width test of the candidate
-        pairing cannot tell a vessel seen foreshortened (strong, short, as wide as its lumen) from the
-        robot; the path can. A robot is also of bounded length over width. (The two views' widths are
-        not compared here: where the robot crosses a vessel one view's width is unreliable, and such
-        frames are flagged by the clutter test instead.)
-        """
-        s = self.settings
-        # Widths in mm at the reconstructed centroid (magnification from the source distance).
-        widths: dict[str, float] = {}
-        for name, blob in blobs.items():
-            view = self.calibration.views[name]
-            widths[name] = blob.width_px * float(np.linalg.norm(rec.centroid - view.source_mm)) / float(view.K[0, 0])
-        width = 0.5 * (widths["p"] + widths["q"])
-        if rec.length_mm is not None and rec.length_mm > s.max_length_over_width * width:
-            return (f"no robot-like object in view p and q: the object seen is {rec.length_mm:.1f} mm long and "
-                    f"{width:.1f} mm wide, longer than any robot (a stretch of vessel)")
-        directions = [rec.direction] if rec.direction is not None else list(rec.candidates or [])
-        best: tuple[float, str] | None = None
-        for direction in directions:
-            # Per direction hypothesis: the view seeing the axis most side-on, and the rod's chord there.
-            sines = {}
-            for name in blobs:
-                ray = rec.centroid - self.calibration.views[name].source_mm
-                cosine = abs(float(np.dot(ray, direction))) / float(np.linalg.norm(ray))
-                sines[name] = math.sqrt(max(0.0, 1.0 - cosine * cosine))
-            side = max(sines, key=lambda n: sines[n])
-            mu = blobs[side].peak * max(sines[side], 1e-3) / max(widths[side], 1e-6)
-            if best is None or mu > best[0]:
-                best = (mu, side)
-        if best is not None and best[0] < s.min_path_attenuation_per_mm:
-            return (f"no robot-like object in view {'p' if best[1] == 'q' else 'q'}: the object attenuates "
-                    f"{best[0]:.2f}/mm of path in view {best[1]} (seen side-on there), like contrast medium, "
-                    f"not like the robot (>= {s.min_path_attenuation_per_mm:g}/mm)")
-        return None
-
-    def _declutter(self, rec: Reconstruction, blobs: dict[str, Blob]) -> Reconstruction:
-        """The centroid placed along the axis by the clean view alone when the other overlaps a vessel.
-
-        Where the robot overlaps a vessel in one view, its blob there merges with the vessel and its
-        centroid slides along the axis; the 3D axis (from both views' axis planes) and the position
-        across it are hardly affected. The clean view's centroid ray then fixes where along the axis
-        the centroid is, provided that view sees the axis well away from end-on.
-        """
-        s = self.settings
-        d = rec.direction
-        cluttered = [name for name in VIEWS if blobs[name].clutter > s.max_clutter]
-        if d is None or len(cluttered) != 1:
-            return rec
-        clean = "q" if cluttered[0] == "p" else "p"
-        view, feat = self.calibration.views[clean], rec.view_features[clean]
-        ray = rec.centroid - view.source_mm
-        z = float(np.linalg.norm(ray))
-        cosine = float(np.dot(ray, d)) / z
-        sin2 = 1.0 - cosine * cosine
-        if sin2 < _MIN_DECLUTTER_SIN ** 2:
-            return rec
-        # The clean view's weighted centroid, less its perspective bias (as perspective_corrected_centroid).
-        mm_per_px = z / float(view.K[0, 0])
-        shift = -3.0 * cosine * feat.eigenvalues[0] * mm_per_px ** 2 / sin2 / z
-        seen, true = view.project(np.vstack([rec.centroid + shift * d, rec.centroid]))
-        pixel = feat.centroid + (true - seen)
-        b, _ = ray_line_parameters(view, pixel[None, :], rec.centroid, d)
-        # ... and across it, the point of the clean ray nearest the axis: the triangulation had spread the
-        # cluttered view's error over both rays.
-        origins, rays = view.rays(pixel[None, :])
-        along = rec.centroid + float(b[0]) * d - origins[0]
-        centroid = origins[0] + float(np.dot(along, rays[0])) * rays[0]
-        return dataclasses.replace(rec, centroid=centroid)
-
-    def _cut_by_edge(self, blobs: dict[str, Blob]) -> str | None:
-        """Why the robot's image is cut by a detector's edge (None if it is whole in both views).
-
-        A robot partly outside a view's field leaves a shortened, off-centre image: its centroid and
-        length would be invented from the part that is seen.
-        """
-        for name, blob in blobs.items():
-            w, h = self.calibration.views[name].image_size
-            win, mask = blob.window, blob.mask
-            if ((win.x0 == 0 and mask[:, 0].any()) or (win.y0 == 0 and mask[0].any())
-                    or (win.x1 == w and mask[:, -1].any()) or (win.y1 == h and mask[-1].any())):
-                return f"the robot's image reaches the edge of view {name}: it is partly outside the field"
-        return None
 
     def _centroid_mismatch_px(self, feats: dict[str, Features2D]) -> float:
         cp = self.calibration.p.undistort_points(feats["p"].centroid)
