@@ -172,6 +172,7 @@ def reconstruct(calibration: Calibration, F: np.ndarray, feat_p: Features2D, fea
     plane_angle = math.degrees(math.asin(min(1.0, float(np.linalg.norm(cross)))))
     reasons: list[str] = []
     ambiguous = False
+    ends_in_doubt = False  # the tips and the axis planes disagree: the 2D ends may map to the wrong 3D ends
     case: str | None = pairing.case
     degenerate = paper or plane_angle < settings.min_plane_angle_deg
 
@@ -184,11 +185,11 @@ def reconstruct(calibration: Calibration, F: np.ndarray, feat_p: Features2D, fea
         tips_dir = hyps[implied][0] - hyps[implied][1]
         disagreement = line_angle_deg(tips_dir, d_planes) if np.all(np.isfinite(tips_dir)) else 90.0
         if pairing.separated and implied != pairing.case:
-            ambiguous = True
+            ambiguous = ends_in_doubt = True
             reasons.append(f"the axis planes imply pairing {implied} but the tips' epipolar test says "
                            f"{pairing.case} (RMS A {pairing.rms_a_px:.1f} px, B {pairing.rms_b_px:.1f} px)")
         elif disagreement > settings.max_axis_disagreement_deg:
-            ambiguous = True
+            ambiguous = ends_in_doubt = True
             reasons.append(f"the axis from the two views' planes and from the triangulated tips differ by "
                            f"{disagreement:.1f} deg")
     elif pairing.separated:
@@ -223,7 +224,7 @@ def reconstruct(calibration: Calibration, F: np.ndarray, feat_p: Features2D, fea
         return _finish_paper(calibration, centroid, d, hyps[case or pairing.case], feat_p, feat_q, pairing,
                              plane_angle, ambiguous, reasons, previous_direction)
     return _finish_weighted(calibration, centroid, d, feat_p, feat_q, pairing, plane_angle, ambiguous, reasons,
-                            previous_direction, settings)
+                            previous_direction, settings, ends_in_doubt)
 
 
 def _finish_paper(calibration: Calibration, centroid: np.ndarray, d: np.ndarray, tips: np.ndarray,
@@ -276,7 +277,8 @@ def perspective_corrected_centroid(calibration: Calibration, feats: dict[str, Fe
 
 def _finish_weighted(calibration: Calibration, centroid: np.ndarray, d: np.ndarray, feat_p: Features2D,
                      feat_q: Features2D, pairing: Pairing, plane_angle: float, ambiguous: bool, reasons: list[str],
-                     previous: np.ndarray | None, settings: RecognitionSettings | None = None) -> Reconstruction:
+                     previous: np.ndarray | None, settings: RecognitionSettings | None = None,
+                     ends_in_doubt: bool = False) -> Reconstruction:
     settings = settings or RecognitionSettings()
     views = {"p": (calibration.p, feat_p), "q": (calibration.q, feat_q)}
     centroid = perspective_corrected_centroid(calibration, {"p": feat_p, "q": feat_q}, centroid, d)
@@ -290,6 +292,10 @@ def _finish_weighted(calibration: Calibration, centroid: np.ndarray, d: np.ndarr
             ray = _unit(centroid - view.source_mm)
             votes.append((float(np.linalg.norm(_cross(ray, d))), feat.head_index == plus_index[name]))
     votes.sort(reverse=True)
+    # With the triangulated tips and the axis planes disagreeing (a blob bent or lengthened by clutter),
+    # a view's ends may map to the wrong 3D end: one view's ramp cannot name the head then (a wrong claim
+    # reports the tips a body length off); both views must see it at the same end.
+    demote = ends_in_doubt and not (len(votes) > 1 and votes[0][1] == votes[1][1])
     if len(votes) > 1 and votes[0][1] != votes[1][1] and votes[1][0] < settings.head_foreshortening * votes[0][0]:
         # A view that sees the axis strongly foreshortened squeezes the cone's ramp into the body's
         # blurred end (and a flat end seen obliquely shows its rim as a ramp): its vote is the weaker
@@ -298,6 +304,11 @@ def _finish_weighted(calibration: Calibration, centroid: np.ndarray, d: np.ndarr
     head_identified = bool(votes) and all(v[1] == votes[0][1] for v in votes)
     if votes and not head_identified:
         reasons.append("the two views disagree on which end is the head")
+    # A demoted head still shapes the tips (its end measured as a cone), like the two-view cone-end test.
+    demoted = head_identified and demote
+    if demoted:
+        reasons.append("the head is not claimed: the tips and the axis planes disagree and the views do not "
+                       "both see it")
     if head_identified and not votes[0][1]:
         d = -d
         plus_index = {k: 1 - v for k, v in plus_index.items()}
@@ -313,7 +324,9 @@ def _finish_weighted(calibration: Calibration, centroid: np.ndarray, d: np.ndarr
     final: dict[str, Features2D] = {}
     for name, (view, feat) in views.items():
         plus = plus_index[name]
-        if head_identified:
+        if demoted:
+            feat = replace(feat.with_head(plus), head_index=None)
+        elif head_identified:
             feat = feat.with_head(plus)
         elif cone_end is not None:
             # Tips only: the end whose profile ramps in both views is measured as a cone (apex), the other
@@ -330,8 +343,8 @@ def _finish_weighted(calibration: Calibration, centroid: np.ndarray, d: np.ndarr
     b_plus, b_minus = sums / weights
     tips = np.array([centroid + b_plus * d, centroid + b_minus * d])
     reproj = _reprojection(calibration, centroid, tips, final["p"], final["q"], view_tips)
-    return Reconstruction(centroid, d, tips, head_identified, float(b_plus - b_minus), reproj, pairing, plane_angle,
-                          ambiguous, reasons, None, view_tips, final)
+    return Reconstruction(centroid, d, tips, head_identified and not demoted, float(b_plus - b_minus), reproj,
+                          pairing, plane_angle, ambiguous, reasons, None, view_tips, final)
 
 
 def _likely_cone_end(views: dict[str, tuple[View, Features2D]], plus_index: dict[str, int],

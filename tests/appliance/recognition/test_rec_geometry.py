@@ -110,3 +110,29 @@ def test_paper_method_reconstructs_from_tips(calibration: Calibration) -> None:
     assert rec.direction is not None
     assert abs(float(rec.direction @ d)) == pytest.approx(1.0, abs=1e-8)
     assert rec.centroid == pytest.approx(c, abs=1e-6)
+
+
+@pytest.mark.parametrize("q_sees_head", [False, True])
+def test_head_named_only_by_both_views_when_tips_and_axis_planes_disagree(calibration: Calibration,
+                                                                          q_sees_head: bool) -> None:
+    # View q's blob axis is turned 30 deg from the line through its tips (a blob bent by clutter): the
+    # triangulated tips and the axis planes disagree, so a view's ends may map to the wrong 3D end and
+    # view p's ramp alone must not name the head; both views agreeing still may.
+    c, d, head, tail = _segment((5.0, -8.0, 3.0), (0.5, -0.2, 0.7))
+    fp = _features(calibration.p, head, tail, c)
+    fq = _features(calibration.q, head, tail, c, swap=True, head_known=q_sees_head)
+    turn = math.radians(30.0)
+    rot = np.array([[math.cos(turn), -math.sin(turn)], [math.sin(turn), math.cos(turn)]])
+    bent = Features2D(fq.centroid, rot @ fq.axis, fq.eigenvalues, fq.tips, fq.pixel_count, fq.head_index,
+                      axis_sigma_rad=fq.axis_sigma_rad)
+    rec = reconstruct(calibration, calibration.F, fp, bent, SETTINGS)
+    assert rec.ambiguous and rec.direction is not None and rec.tips is not None
+    assert any("differ by" in r for r in rec.reasons), rec.reasons
+    assert rec.head_identified == q_sees_head
+    if q_sees_head:
+        assert float(rec.direction @ d) > 0.8
+    else:
+        assert any("head is not claimed" in r for r in rec.reasons)
+    # With q's blob axis along its tips, view p alone names the head as before.
+    straight = reconstruct(calibration, calibration.F, fp, fq, SETTINGS)
+    assert not straight.ambiguous and straight.head_identified
