@@ -293,9 +293,9 @@ def _finish_weighted(calibration: Calibration, centroid: np.ndarray, d: np.ndarr
             votes.append((float(np.linalg.norm(_cross(ray, d))), feat.head_index == plus_index[name]))
     votes.sort(reverse=True)
     # With the triangulated tips and the axis planes disagreeing (a blob bent or lengthened by clutter),
-    # a view's ends may map to the wrong 3D end: one view's ramp cannot name the head then (a wrong claim
-    # reports the tips a body length off); both views must see it at the same end.
-    demote = ends_in_doubt and not (len(votes) > 1 and votes[0][1] == votes[1][1])
+    # a view's ends may map to the wrong 3D end: unless both views see the head at the same end, the
+    # claim is checked against the reprojection below (a wrong claim puts the tips a body length off).
+    doubtful = ends_in_doubt and not (len(votes) > 1 and votes[0][1] == votes[1][1])
     if len(votes) > 1 and votes[0][1] != votes[1][1] and votes[1][0] < settings.head_foreshortening * votes[0][0]:
         # A view that sees the axis strongly foreshortened squeezes the cone's ramp into the body's
         # blurred end (and a flat end seen obliquely shows its rim as a ramp): its vote is the weaker
@@ -304,11 +304,6 @@ def _finish_weighted(calibration: Calibration, centroid: np.ndarray, d: np.ndarr
     head_identified = bool(votes) and all(v[1] == votes[0][1] for v in votes)
     if votes and not head_identified:
         reasons.append("the two views disagree on which end is the head")
-    # A demoted head still shapes the tips (its end measured as a cone), like the two-view cone-end test.
-    demoted = head_identified and demote
-    if demoted:
-        reasons.append("the head is not claimed: the tips and the axis planes disagree and the views do not "
-                       "both see it")
     if head_identified and not votes[0][1]:
         d = -d
         plus_index = {k: 1 - v for k, v in plus_index.items()}
@@ -324,9 +319,7 @@ def _finish_weighted(calibration: Calibration, centroid: np.ndarray, d: np.ndarr
     final: dict[str, Features2D] = {}
     for name, (view, feat) in views.items():
         plus = plus_index[name]
-        if demoted:
-            feat = replace(feat.with_head(plus), head_index=None)
-        elif head_identified:
+        if head_identified:
             feat = feat.with_head(plus)
         elif cone_end is not None:
             # Tips only: the end whose profile ramps in both views is measured as a cone (apex), the other
@@ -343,8 +336,14 @@ def _finish_weighted(calibration: Calibration, centroid: np.ndarray, d: np.ndarr
     b_plus, b_minus = sums / weights
     tips = np.array([centroid + b_plus * d, centroid + b_minus * d])
     reproj = _reprojection(calibration, centroid, tips, final["p"], final["q"], view_tips)
-    return Reconstruction(centroid, d, tips, head_identified and not demoted, float(b_plus - b_minus), reproj,
-                          pairing, plane_angle, ambiguous, reasons, None, view_tips, final)
+    if head_identified and doubtful and (reproj is None or reproj > settings.head_doubt_reprojection_px):
+        # The demoted end keeps its cone-model tip (like the two-view cone-end test); only the claim goes.
+        head_identified = False
+        final = {name: replace(feat, head_index=None) for name, feat in final.items()}
+        reasons.append(f"the head is not claimed: the tips and the axis planes disagree, the ends reproject "
+                       f"{reproj or float('nan'):.1f} px off one line, and the views do not both see the head")
+    return Reconstruction(centroid, d, tips, head_identified, float(b_plus - b_minus), reproj, pairing,
+                          plane_angle, ambiguous, reasons, None, view_tips, final)
 
 
 def _likely_cone_end(views: dict[str, tuple[View, Features2D]], plus_index: dict[str, int],

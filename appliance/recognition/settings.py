@@ -110,6 +110,10 @@ class RecognitionSettings(StrictModel):
     #: When the views disagree on the head, the view seeing the axis more side-on decides if the other's
     #: sine of the ray-axis angle is below this fraction of its own (foreshortened view: weaker evidence).
     head_foreshortening: float = Field(0.5, gt=0, le=1)
+    #: Where the axis planes and the tips disagree and the two views do not both see the head, the
+    #: head is not claimed if the 3D centroid and tips reproject worse than this (RMS px): the 2D ends
+    #: then do not fit one 3D line, so a view's end may be mapped to the wrong 3D end.
+    head_doubt_reprojection_px: float = Field(3.0, gt=0)
 
     #: A frame whose background under the robot varies by more than this fraction of the robot's
     #: contrast (overlap with a vessel, say) is flagged ambiguous: reduced accuracy.
