@@ -16,13 +16,18 @@ from dataclasses import replace
 import numpy as np
 
 from appliance.geometry import Calibration
-from appliance.recognition.reconstruction import Reconstruction, ray_line_parameters
+from appliance.recognition.reconstruction import Reconstruction, axis_plane, ray_line_parameters
 from appliance.recognition.segmentation import Blob
 from appliance.recognition.settings import RecognitionSettings
 
 _VIEWS = ("p", "q")
 #: The clean view must see the axis at least this far from end-on (sine) to place the centroid along it.
 _MIN_DECLUTTER_SIN = 0.3
+#: The clean centroid ray must cross the cluttered view's axis plane at least this steeply (sine).
+_MIN_PLANE_SIN = 0.3
+#: ... and the cluttered view be cluttered this much (fraction of the robot's contrast): below it, its
+#: blob slides less than the noise of the clean view's ray depth, and the triangulated axis line is kept.
+_PLANE_CLUTTER = 0.25
 
 
 def not_robot_like(calibration: Calibration, rec: Reconstruction, blobs: dict[str, Blob],
@@ -94,10 +99,18 @@ def declutter(calibration: Calibration, rec: Reconstruction, blobs: dict[str, Bl
     shift = -3.0 * cosine * feat.eigenvalues[0] * mm_per_px ** 2 / sin2 / z
     seen, true = view.project(np.vstack([rec.centroid + shift * d, rec.centroid]))
     pixel = feat.centroid + (true - seen)
-    b, _ = ray_line_parameters(view, pixel[None, :], rec.centroid, d)
-    # ... and across it, the point of the clean ray nearest the axis: the triangulation had spread the
-    # cluttered view's error over both rays.
     origins, rays = view.rays(pixel[None, :])
+    # The cluttered view's blob slides along its axis but hardly across it: the plane through its
+    # source and 2D axis line still holds the robot's axis. Where the clean ray crosses that plane is
+    # the centroid (the triangulation had spread the cluttered view's error over both rays, and so
+    # moved the 3D axis line across too).
+    plane = axis_plane(calibration.views[cluttered[0]], rec.view_features[cluttered[0]])
+    normal, offset = plane[:3], float(plane[3])
+    k = float(np.dot(normal, rays[0]))
+    if abs(k) > _MIN_PLANE_SIN and blobs[cluttered[0]].clutter > _PLANE_CLUTTER:
+        return replace(rec, centroid=origins[0] - (float(np.dot(normal, origins[0])) + offset) / k * rays[0])
+    # The clean ray nearly lies in that plane: the point of the clean ray nearest the 3D axis instead.
+    b, _ = ray_line_parameters(view, pixel[None, :], rec.centroid, d)
     along = rec.centroid + float(b[0]) * d - origins[0]
     centroid = origins[0] + float(np.dot(along, rays[0])) * rays[0]
     return replace(rec, centroid=centroid)
