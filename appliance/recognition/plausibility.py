@@ -27,7 +27,7 @@ _MIN_DECLUTTER_SIN = 0.3
 _MIN_PLANE_SIN = 0.3
 #: ... and the cluttered view be cluttered this much (fraction of the robot's contrast): below it, its
 #: blob slides less than the noise of the clean view's ray depth, and the triangulated axis line is kept.
-_PLANE_CLUTTER = 0.25
+_PLANE_CLUTTER = 0.2
 
 
 def not_robot_like(calibration: Calibration, rec: Reconstruction, blobs: dict[str, Blob],
