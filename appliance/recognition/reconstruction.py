@@ -13,7 +13,9 @@ known traps):
   position along the axis, and the views are averaged with weight ``sin^2`` of the ray-axis angle (a
   ray nearly along the axis says little about where along it the tip is);
 * head: the conical end's longer intensity ramp, in whichever views show it, mapped to the same end
-  of the 3D axis; views that disagree leave the head unidentified.
+  of the 3D axis; views that disagree leave the head unidentified, and so does a single view's claim
+  when the tips and the axis planes disagree and the ends reproject badly (its ends may be mapped to
+  the wrong 3D end).
 
 The ``paper`` method triangulates the tips of the chosen pairing (linear triangulation) and takes the
 axis from them, as in the seed paper.
