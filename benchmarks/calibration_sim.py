@@ -41,16 +41,12 @@ from appliance.xray_calibration.cube import CubeOptions, calibrate_cube  # noqa:
 from appliance.xray_calibration.grid import calibrate_grids, detect_grid, grid_points, grid_symmetries  # noqa: E402
 from appliance.xray_calibration.phantom import make_cube_phantom  # noqa: E402
 from drivers.loopback.xray_render import BiplaneRenderer, TrueView, biplane_views  # noqa: E402
+from drivers.loopback.scene_builders import perturb_view  # noqa: E402
 
 OTS_NOISE_MM = 0.19
 
 
-def perturb(view: TrueView, rng: np.random.Generator, deg: float = 1.5, mm: float = 3.0) -> TrueView:
-    axis = rng.normal(size=3)
-    turn, _ = cv2.Rodrigues(axis / np.linalg.norm(axis) * np.radians(deg))
-    source = view.source_mm + rng.normal(size=3) * mm / np.sqrt(3)
-    R = turn @ view.R
-    return TrueView(view.name, view.K, view.dist, R, -R @ source, view.image_size)
+
 
 
 def as_view(view: TrueView) -> View:
@@ -85,7 +81,7 @@ def errors(views: dict[str, View], truth: dict[str, TrueView], rms: dict[str, fl
 def cube_trial(seed: int, image_size: tuple[int, int], variant: str) -> dict[str, float]:
     rng = np.random.default_rng(seed)
     nominal = biplane_views(image_size=image_size)
-    truth = {n: perturb(v, rng) for n, v in nominal.items()}
+    truth = {n: perturb_view(v, rng) for n, v in nominal.items()}
     phantom = make_cube_phantom()
     actual = phantom.points_mm
     if variant.startswith("mfg"):
@@ -116,7 +112,7 @@ def cube_trial(seed: int, image_size: tuple[int, int], variant: str) -> dict[str
 def grid_trial(seed: int, image_size: tuple[int, int]) -> dict[str, float]:
     rng = np.random.default_rng(seed)
     nominal = biplane_views(image_size=image_size)
-    truth = {n: perturb(v, rng) for n, v in nominal.items()}
+    truth = {n: perturb_view(v, rng) for n, v in nominal.items()}
     obj = grid_points("circles", 7, 9, 10.0)
     normal = np.array([-1.0, -1.0, 0.0]) / np.sqrt(2)
     x_axis = np.array([1.0, -1.0, 0.0]) / np.sqrt(2)
@@ -158,7 +154,7 @@ def tracking_table(image_size: tuple[int, int], poses_per_robot: int) -> None:
 
     rng = np.random.default_rng(7)
     nominal = biplane_views(image_size=image_size)
-    truth = {n: perturb(v, rng) for n, v in nominal.items()}
+    truth = {n: perturb_view(v, rng) for n, v in nominal.items()}
     phantom = make_cube_phantom()
     images = BiplaneRenderer(truth, None, beads=(phantom.points_mm, 1.0, 2.0), seed=1).render(None).images
     initial = Calibration.from_views(as_view(nominal["p"]), as_view(nominal["q"]))

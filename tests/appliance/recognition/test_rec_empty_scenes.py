@@ -7,13 +7,13 @@ Also the robot against the vessel: a centroid placed by the clean view where the
 vessel, and a cone end's tip found from both views' profiles when the head is not identified."""
 from __future__ import annotations
 
-import itertools
 
 import numpy as np
 import pytest
 
 from appliance.geometry import Calibration, View
 from appliance.recognition import PostureTracker, RecognitionSettings
+from drivers.loopback.scene_builders import random_vessel, smooth_centreline
 from drivers.loopback.xray_render import (
     BiplaneRenderer,
     ImagingSettings,
@@ -43,32 +43,10 @@ def _calibration(views: dict[str, TrueView]) -> Calibration:
     return Calibration.from_views(*(View(n, v.K, v.dist, v.R, v.t, v.image_size) for n, v in sorted(views.items())))
 
 
-def _densify(points: np.ndarray, step_mm: float = 1.0) -> np.ndarray:
-    out = [points[0]]
-    for a, b in itertools.pairwise(points):
-        n = max(1, int(np.linalg.norm(b - a) / step_mm))
-        out.extend(a + (b - a) * k / n for k in range(1, n + 1))
-    return np.asarray(out)
 
 
-def _random_vessel(rng: np.random.Generator) -> VesselPhantom:
-    """A smooth random vessel through the field: 25 mm steps turning up to 35 degrees each (bends of
-    radius >= ~40 mm, no self-overlapping mitres), any direction in 3D, so that parts of it run
-    nearly along one view's rays and parts cross each other in projection."""
-    d = rng.normal(size=3)
-    d /= np.linalg.norm(d)
-    x = rng.uniform(-20.0, 20.0, 3) - 60.0 * d
-    points = [x]
-    for _ in range(6):
-        side = rng.normal(size=3)
-        side -= side.dot(d) * d
-        side /= np.linalg.norm(side)
-        angle = np.radians(rng.uniform(0.0, 35.0))
-        d = np.cos(angle) * d + np.sin(angle) * side
-        x = x + 25.0 * d
-        points.append(x)
-    # Chordal interpolation of a 1 mm polyline; corners of <= 35 degrees are mild for these radii.
-    return VesselPhantom(_densify(np.asarray(points)), rng.uniform(1.0, 3.0), rng.uniform(0.04, 0.08))
+
+
 
 
 @pytest.fixture(scope="module")
@@ -82,8 +60,8 @@ def test_twenty_random_empty_scenes_give_no_posture(views: dict[str, TrueView]) 
     reasons = set()
     for seed in range(20):
         rng = np.random.default_rng(1000 + seed)
-        vessel = (VesselPhantom(_densify(np.asarray(DEFAULT_VESSEL_MM)), 2.5, 0.06) if seed % 5 == 0
-                  else _random_vessel(rng))
+        vessel = (VesselPhantom(smooth_centreline(np.asarray(DEFAULT_VESSEL_MM)), 2.5, 0.06) if seed % 5 == 0
+                  else random_vessel(rng))
         renderer = BiplaneRenderer(views, None, vessel=vessel, settings=ImagingSettings(), seed=seed)
         tracker = PostureTracker(calibration, SETTINGS)
         for frame in range(2):  # the second frame has a history of failures, not of a pose
@@ -105,7 +83,7 @@ def test_foreshortened_vessel_is_rejected_per_mm_of_path(views: dict[str, TrueVi
     ray = -calibration.p.source_mm / np.linalg.norm(calibration.p.source_mm)
     across = np.cross(ray, [0.0, 0.0, 1.0])
     axis = np.cos(np.radians(20.0)) * ray + np.sin(np.radians(20.0)) * across / np.linalg.norm(across)
-    vessel = VesselPhantom(_densify(np.array([-40.0 * axis, 40.0 * axis]) + [5.0, -3.0, 2.0]), 2.5, 0.08)
+    vessel = VesselPhantom(smooth_centreline(np.array([-40.0 * axis, 40.0 * axis]) + [5.0, -3.0, 2.0]), 2.5, 0.08)
     renderer = BiplaneRenderer(views, None, vessel=vessel, settings=ImagingSettings(), seed=3)
     pair = renderer.render(None)
     posture = PostureTracker(calibration, SETTINGS).process(pair.images["p"], pair.images["q"])
@@ -115,7 +93,7 @@ def test_foreshortened_vessel_is_rejected_per_mm_of_path(views: dict[str, TrueVi
 
 @pytest.fixture(scope="module")
 def robot_scene(views: dict[str, TrueView]) -> tuple[Calibration, BiplaneRenderer]:
-    vessel = VesselPhantom(_densify(np.asarray(DEFAULT_VESSEL_MM)), 2.5, 0.06)
+    vessel = VesselPhantom(smooth_centreline(np.asarray(DEFAULT_VESSEL_MM)), 2.5, 0.06)
     body = RobotBody(10.0, 2.0, 20.0, 2.5)  # robot 1 of the seed paper
     return _calibration(views), BiplaneRenderer(views, body, vessel=vessel, settings=ImagingSettings(), seed=5)
 
@@ -162,7 +140,7 @@ def test_centroid_over_a_vessel_in_one_view_comes_from_the_clean_view(views: dic
     around the default vessel: where one view's blob merges with the vessel, the clean view's ray places
     the centroid. Without it (clutter never detected) the same frames are several times worse."""
     calibration = _calibration(_sim_views((384, 336)))
-    centreline = _densify(np.asarray(DEFAULT_VESSEL_MM))
+    centreline = smooth_centreline(np.asarray(DEFAULT_VESSEL_MM))
     renderer = BiplaneRenderer(_sim_views((384, 336)), RobotBody(30.0, 5.0, 15.0, 0.15 * 2.5 + 0.85 * 0.025),
                                vessel=VesselPhantom(centreline, 2.5, 0.06), settings=ImagingSettings(), seed=2)
     blind = SETTINGS.model_copy(update={"max_clutter": 1e6})

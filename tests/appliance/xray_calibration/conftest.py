@@ -5,25 +5,19 @@ equipment geometry (which the tests pass as ``--initial``), as on a real bench.
 """
 from __future__ import annotations
 
-import cv2
 import numpy as np
 import pytest
 
 from appliance.geometry import Calibration, View
 from appliance.xray_calibration.phantom import Phantom, make_cube_phantom
 from drivers.loopback.xray_render import BiplaneRenderer, ImagingSettings, TrueView, biplane_views
+from drivers.loopback.scene_builders import perturb_view
 
 BEAD_RADIUS_MM = 1.0
 BEAD_MU_PER_MM = 2.0
 
 
-def perturb(view: TrueView, rng: np.random.Generator, deg: float = 1.5, mm: float = 3.0) -> TrueView:
-    """The same view turned by ``deg`` about a random axis and with its source moved by about ``mm``."""
-    axis = rng.normal(size=3)
-    turn, _ = cv2.Rodrigues(axis / np.linalg.norm(axis) * np.radians(deg))
-    source = view.source_mm + rng.normal(size=3) * mm / np.sqrt(3)
-    R = turn @ view.R
-    return TrueView(view.name, view.K, view.dist, R, -R @ source, view.image_size)
+
 
 
 def as_view(view: TrueView) -> View:
@@ -39,7 +33,7 @@ def nominal_views() -> dict[str, TrueView]:
 @pytest.fixture(scope="session")
 def true_views(nominal_views: dict[str, TrueView]) -> dict[str, TrueView]:
     rng = np.random.default_rng(11)
-    return {name: perturb(view, rng) for name, view in nominal_views.items()}
+    return {name: perturb_view(view, rng) for name, view in nominal_views.items()}
 
 
 @pytest.fixture(scope="session")
