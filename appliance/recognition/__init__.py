@@ -3,8 +3,8 @@
 The pipeline, one module per stage (each stage is a plain function, so it can be timed alone):
 
 * :mod:`.background` - the open-field background ``log B``, kept coarse (:func:`log_background`);
-* :mod:`.segmentation` - attenuation image, robot candidates in a ROI (:func:`segment`) or anywhere
-  (:func:`detect`, coarse-to-fine);
+* :mod:`.segmentation` - attenuation image, robot candidates in a region of interest (:func:`segment`);
+* :mod:`.detection` - robot candidates anywhere in the frame, coarse to fine (:func:`detect`);
 * :mod:`.features` - PCA features per view (:func:`weighted_features`, the paper's :func:`paper_features`);
 * :mod:`.correspondence` - tip pairing cases A/B by geometric epipolar distance (:func:`choose_pairing`);
 * :mod:`.reconstruction` - centroid, axis, tips, head, length (:func:`reconstruct`);
@@ -29,11 +29,11 @@ from appliance.recognition.segmentation import (
     LogBackground,
     Roi,
     attenuation,
-    detect,
     log_background,
     noise_sigma,
     segment,
 )
+from appliance.recognition.detection import detect
 from appliance.recognition.settings import RecognitionSettings
 from appliance.recognition.tracker import PostureTracker
 

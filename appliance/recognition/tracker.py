@@ -26,7 +26,8 @@ from appliance.recognition.features import Features2D, features
 from appliance.recognition.plausibility import cut_by_edge, declutter, not_robot_like
 from appliance.recognition.posture import Posture, ViewObservation
 from appliance.recognition.reconstruction import Reconstruction, reconstruct
-from appliance.recognition.segmentation import Blob, LogBackground, Roi, detect, log_background, segment
+from appliance.recognition.detection import detect
+from appliance.recognition.segmentation import Blob, LogBackground, Roi, log_background, segment
 from appliance.recognition.settings import RecognitionSettings
 
 log = logging.getLogger(__name__)
