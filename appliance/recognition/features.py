@@ -16,17 +16,19 @@ Two estimators:
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
+from appliance.recognition import view_kernels
 from appliance.recognition.segmentation import Blob
 from appliance.recognition.settings import RecognitionSettings
 
 #: Profile levels (fractions of the plateau) measured at each end; 0.25 and 0.64 are where
 #: sqrt(profile) is 0.5 and 0.8 of the plateau's, the two points of the apex extrapolation.
 _LEVELS = (0.2, 0.25, 0.5, 0.64, 0.8)
+_LEVELS_ARRAY = np.array(_LEVELS)
 
 
 @dataclass(frozen=True)
@@ -102,32 +104,27 @@ def paper_features(blob: Blob) -> Features2D:
     return paper_features_from_points(points)
 
 
+def _as_weights(weights: np.ndarray) -> np.ndarray:
+    """Weights as the kernels take them: float32 (as :func:`.segment` makes them), C-contiguous."""
+    return np.ascontiguousarray(weights, dtype=np.float32)
+
+
 def weighted_moments(weights: np.ndarray) -> tuple[np.ndarray, float, float, float, float]:
     """Weighted centroid (local px) and central second moments ``s11, s22, s12`` and total weight."""
-    m = cv2.moments(weights)
-    w = m["m00"]
-    if w <= 0:
+    m00, m10, m01, mu20, mu02, mu11 = view_kernels.moments(_as_weights(weights))
+    if not m00 > 0:
         raise ValueError("weights sum to zero or less")
-    return np.array([m["m10"] / w, m["m01"] / w]), m["mu20"] / w, m["mu02"] / w, m["mu11"] / w, w
+    return np.array([m10 / m00, m01 / m00]), mu20 / m00, mu02 / m00, mu11 / m00, m00
 
 
 def axial_profile(weights: np.ndarray, centroid: np.ndarray, axis: np.ndarray) -> tuple[np.ndarray, float]:
-    """Weights summed in 1-px bins of the axial coordinate ``s`` (linear interpolation between bins).
+    """Weights summed in 1-px bins of the axial coordinate ``s`` (linear interpolation between bins),
+    then a [1 2 1]/4 smoothing: symmetric, so it moves no crossing of a symmetric edge.
 
     Returns the profile and ``s`` of its bin 0; bin ``i`` is at ``s0 + i``.
     """
-    ys, xs = np.nonzero(weights)
-    w = weights[ys, xs].astype(np.float64)
-    s = (xs - centroid[0]) * axis[0] + (ys - centroid[1]) * axis[1]
-    s0 = float(np.floor(s.min())) - 2.0
-    u = s - s0
-    i = u.astype(np.int64)
-    frac = u - i
-    n = int(i.max()) + 4
-    profile = np.bincount(i, w * (1.0 - frac), n) + np.bincount(i + 1, w * frac, n)
-    # A [1 2 1]/4 smoothing: symmetric, so it moves no crossing of a symmetric edge.
-    profile[1:-1] = 0.25 * profile[:-2] + 0.5 * profile[1:-1] + 0.25 * profile[2:]
-    return profile, s0
+    return view_kernels.axial_profile_of(_as_weights(weights), float(centroid[0]), float(centroid[1]),
+                                         float(axis[0]), float(axis[1]))
 
 
 def axis_sigma_rad(weights: np.ndarray, centroid: np.ndarray, axis: np.ndarray, spread: float,
@@ -136,23 +133,18 @@ def axis_sigma_rad(weights: np.ndarray, centroid: np.ndarray, axis: np.ndarray, 
 
     The axis turns by ``mu_st / (l1 - l2)`` for a mixed moment ``mu_st`` in the principal frame, which
     noise of independent pixels makes ``sqrt(sum sigma_i^2 s^2 t^2) / W``. A linear estimate: when it
-    comes out large (a nearly round blob: the robot seen end-on) the axis is simply unknown.
+    comes out large (a nearly round blob: the robot seen end-on) the axis is simply unknown. Quantum
+    noise of -log(I) grows as exp(A / 2) behind the body (fewer photons), so each pixel's variance is
+    scaled by ``exp(weight)``: a dense robot's own pixels are much noisier than the background
+    ``pixel_sigma`` was measured on.
     """
-    ys, xs = np.nonzero(weights)
-    dx, dy = xs - centroid[0], ys - centroid[1]
-    s = dx * axis[0] + dy * axis[1]
-    t = -dx * axis[1] + dy * axis[0]
-    total = float(weights.sum(dtype=np.float64))
-    if total <= 0 or spread <= 0:
-        return float("inf")
-    # Quantum noise of -log(I) grows as exp(A / 2) behind the body (fewer photons), so a dense robot's
-    # own pixels are much noisier than the background ``pixel_sigma`` was measured on.
-    gain = np.exp(np.clip(weights[ys, xs], 0.0, 12.0))
-    return float(pixel_sigma * np.sqrt(np.sum((s * t) ** 2 * gain)) / (total * spread))
+    return float(view_kernels.axis_sigma_of(_as_weights(weights), float(centroid[0]), float(centroid[1]),
+                                            float(axis[0]), float(axis[1]), float(spread), float(pixel_sigma)))
 
 
 def _reach(profile: np.ndarray, s0: float, level: float, direction: int) -> float:
-    """Outward distance from s = 0 where the profile last exceeds ``level`` on one side (sub-bin)."""
+    """Outward distance from s = 0 where the profile last exceeds ``level`` on one side (sub-bin): the
+    definition in numpy, which the compiled :func:`.view_kernels.reach_at` computes for every frame."""
     above = np.flatnonzero(profile >= level)
     if direction > 0:
         j = int(above.max())
@@ -167,52 +159,40 @@ def _reach(profile: np.ndarray, s0: float, level: float, direction: int) -> floa
     return -(s0 + j - ((profile[j] - level) / step if step > 0 else 0.0))
 
 
-def _reach_scalar(profile: list[float], s0: float, level: float, direction: int) -> float:
-    """:func:`_reach` on the profile as a list (same arithmetic, for the few levels of every frame)."""
-    n = len(profile)
-    if direction > 0:
-        j = next(i for i in range(n - 1, -1, -1) if profile[i] >= level)
-        if j + 1 >= n:
-            return s0 + j
-        step = profile[j] - profile[j + 1]
-        return s0 + j + ((profile[j] - level) / step if step > 0 else 0.0)
-    j = next(i for i in range(n) if profile[i] >= level)
-    if j == 0:
-        return -(s0 + j)
-    step = profile[j] - profile[j - 1]
-    return -(s0 + j - ((profile[j] - level) / step if step > 0 else 0.0))
+def _reach_scalar(profile: list[float] | np.ndarray, s0: float, level: float, direction: int) -> float:
+    """:func:`_reach` as every frame computes it (the compiled kernel); kept under this name for the tests
+    that compare the two."""
+    return float(view_kernels.reach_at(np.asarray(profile, dtype=np.float64), float(s0), float(level), int(direction)))
 
 
 def weighted_features(blob: Blob, settings: RecognitionSettings | None = None) -> Features2D:
-    """Attenuation-weighted PCA, sub-pixel tips from the axial profile, and the head end if it shows."""
+    """Attenuation-weighted PCA, sub-pixel tips from the axial profile, and the head end if it shows.
+
+    With ``settings.axis_saturation`` < 1 the orientation comes from the weights capped at that
+    fraction of the peak: still symmetric about the projected axis, but the silhouette's edges weigh
+    as much as its thick middle, which keeps short, cone-heavy bodies (whose mass sits in a round
+    lump) from having an ill-defined principal axis. The numbers come from one kernel
+    (:func:`.view_kernels.weighted_view_features`); the head is the end whose ramp (profile from 0.8
+    down to 0.2 of the plateau) is clearly longer.
+    """
     settings = settings or RecognitionSettings()
-    local_c, s11, s22, s12, _ = weighted_moments(blob.weights)
-    l1, l2, v = _eig2(s11, s22, s12)
-    if settings.axis_saturation < 1.0:
-        # Orientation from saturated weights: still symmetric about the projected axis, but the
-        # silhouette's edges weigh as much as its thick middle, which keeps short, cone-heavy bodies
-        # (whose mass sits in a round lump) from having an ill-defined principal axis.
-        cap = np.float32(settings.axis_saturation * blob.peak)
-        _, t11, t22, t12, _ = weighted_moments(np.minimum(blob.weights, cap))
-        _, _, axis = _eig2(t11, t22, t12)
-        v = axis if float(np.dot(axis, v)) >= 0 else -axis
-    profile, s0 = axial_profile(blob.weights, local_c, v)
-    axis_sigma = axis_sigma_rad(blob.weights, local_c, v, l1 - l2, blob.sigma)
-    plateau = float(profile.max())
-    reach: list[dict[float, float]] = [{}, {}]
-    values = profile.tolist()  # the crossings are scalar work: Python floats, no per-level array passes
-    for level in _LEVELS:
-        reach[0][level] = _reach_scalar(values, s0, level * plateau, +1)
-        reach[1][level] = _reach_scalar(values, s0, level * plateau, -1)
+    cap = settings.axis_saturation * blob.peak if settings.axis_saturation < 1.0 else math.inf
+    status, out, reach_px = view_kernels.weighted_view_features(_as_weights(blob.weights), cap, float(blob.sigma),
+                                                                _LEVELS_ARRAY)
+    if not status:
+        raise ValueError("weights sum to zero or less")
+    cx, cy, l1, l2, vx, vy, axis_sigma = out.tolist()
+    plus, minus = reach_px.tolist()
+    reach = (dict(zip(_LEVELS, plus)), dict(zip(_LEVELS, minus)))
     ramps = (reach[0][0.2] - reach[0][0.8], reach[1][0.2] - reach[1][0.8])
     head: int | None = None
     for end in (0, 1):
         long_, short = ramps[end], ramps[1 - end]
         if long_ >= settings.head_ramp_ratio * max(short, 1e-6) and long_ - short >= settings.head_min_ramp_px:
             head = end
-    origin = np.array([blob.window.x0, blob.window.y0], dtype=np.float64)
-    base = Features2D(local_c + origin, v, (l1, l2), np.zeros((2, 2)), blob.pixel_count, None,
-                      (float(ramps[0]), float(ramps[1])), (reach[0], reach[1]), axis_sigma)
+    centroid = np.array([cx + blob.window.x0, cy + blob.window.y0])
+    base = Features2D(centroid, np.array([vx, vy]), (l1, l2), np.zeros((2, 2)), blob.pixel_count, None,
+                      ramps, reach, axis_sigma)
     return base.with_head(head)
 
 
