@@ -30,6 +30,7 @@ Typical use::
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from typing import Callable, Sequence, TypeVar
@@ -51,7 +52,7 @@ from drivers.amplifier_types import (
     SetResult,
     WatchdogError,
     fault_error,
-    limit_currents,
+    limit_current_list,
 )
 from drivers.errors import DeviceError, DeviceTimeoutError, LinkLostError, ProtocolError
 from firmware_protocol.amplifier import (
@@ -262,39 +263,47 @@ class Amplifier:
 
     def set_currents(self, currents_a: Sequence[float] | np.ndarray) -> SetResult:
         """Command every channel at once (A). The vector is validated, scaled to the host-side limits,
-        sent, and acknowledged with the measured currents; raises on NAK, fault or silence."""
+        sent, and acknowledged with the measured currents; raises on NAK, fault or silence.
+
+        The path to the write is plain float arithmetic on 8 values (no numpy calls): it is what the
+        loop waits for between the allocation and the command on the wire (issue 8).
+        """
         requested = np.asarray(currents_a, dtype=float)
         if requested.shape != (self.info.channels,):
             raise CurrentCommandError(
                 f"set_currents wants {self.info.channels} currents (one per channel), got shape {requested.shape}")
-        if not np.all(np.isfinite(requested)):
-            raise CurrentCommandError(f"set_currents got a non-finite current: {requested.tolist()}")
+        values = requested.tolist()
+        if not all(math.isfinite(v) for v in values):
+            raise CurrentCommandError(f"set_currents got a non-finite current: {values}")
         now = self._clock()
-        commanded, current_scale, slew_scale = limit_currents(
-            requested, self._previous_a, now - self._previous_t, self.limits)
-        command_ma = tuple(int(v) for v in np.trunc(commanded * 1000.0))
+        commanded, current_scale, slew_scale = limit_current_list(
+            values, self._previous_a.tolist(), now - self._previous_t, self.limits)
+        command_ma = tuple(int(v * 1000.0) for v in commanded)   # int() rounds towards zero, like the wire
         sent_at = self._clock()
-        reply, seq, attempts = self._transact_detail(SetCurrents(currents_ma=command_ma), SetCurrentsReply)
+        reply, seq, attempts, written_at = self._transact_detail(SetCurrents(currents_ma=command_ma),
+                                                                 SetCurrentsReply)
         round_trip_s = self._clock() - sent_at
-        commanded = np.asarray(command_ma, dtype=float) / 1000.0
-        self._previous_a, self._previous_t = commanded, now
+        commanded_a = np.array(command_ma, dtype=float) / 1000.0
+        self._previous_a, self._previous_t = commanded_a, now
         if reply.clamped_mask:
             # The host already scaled to its limits: the amplifier's differ (a config mismatch).
             log.warning("set_currents seq %d: the amplifier itself scaled the vector (channels mask 0x%04X)",
                         seq, reply.clamped_mask)
         if current_scale < 1.0 or slew_scale < 1.0:
             log.debug("set_currents seq %d scaled: current x%.4f, slew x%.4f", seq, current_scale, slew_scale)
-        return SetResult(seq=seq, requested_a=requested, commanded_a=commanded, current_scale=current_scale,
+        return SetResult(seq=seq, requested_a=requested, commanded_a=commanded_a, current_scale=current_scale,
                          slew_scale=slew_scale, device_clamped_mask=reply.clamped_mask,
-                         measured_a=np.asarray(reply.measured_ma, dtype=float) / 1000.0,
-                         state=reply.state, faults=reply.faults, attempts=attempts, round_trip_s=round_trip_s)
+                         measured_a=np.array(reply.measured_ma, dtype=float) / 1000.0,
+                         state=reply.state, faults=reply.faults, attempts=attempts, round_trip_s=round_trip_s,
+                         written_at_s=written_at)
 
     # ---- exchange ----------------------------------------------------------------------------
 
     def _transact(self, request: Message, expected: type[ReplyT]) -> ReplyT:
         return self._transact_detail(request, expected)[0]
 
-    def _transact_detail(self, request: Message, expected: type[ReplyT]) -> tuple[ReplyT, int, int]:
+    def _transact_detail(self, request: Message, expected: type[ReplyT]) -> tuple[ReplyT, int, int, float]:
+        """(reply, sequence number, attempts, clock time when the first attempt's write returned)."""
         if self._closed:
             raise LinkLostError(f"amplifier on {self._name} is closed")
         if threading.current_thread() is not self._heartbeat:
@@ -305,12 +314,15 @@ class Amplifier:
             frame = encode_message(request, seq)
             reply: Message | None = None
             attempts = 0
+            written_at = 0.0
             while reply is None and attempts <= self.retries:
                 attempts += 1
                 if attempts > 1:
                     self.retransmissions += 1
                     log.debug("%s seq %d: no reply, retransmitting (attempt %d)", request.TYPE.name, seq, attempts)
                 self._write(frame)
+                if attempts == 1:
+                    written_at = self._clock()
                 reply = self._await_reply(seq, self._clock() + self.ack_timeout_s)
             if reply is None:
                 self._link_state(False, f"no reply to {request.TYPE.name}")
@@ -331,7 +343,7 @@ class Amplifier:
             raise ProtocolError(f"{request.TYPE.name} (seq {seq}) answered by {type(reply).__name__}")
         if isinstance(reply, Ack) and reply.request_type != request.TYPE:
             raise ProtocolError(f"ACK for message type {reply.request_type} answers {request.TYPE.name}")
-        return reply, seq, attempts
+        return reply, seq, attempts, written_at
 
     def _write(self, frame: bytes) -> None:
         try:

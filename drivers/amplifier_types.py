@@ -165,6 +165,7 @@ class SetResult:
     faults: Fault
     attempts: int
     round_trip_s: float
+    written_at_s: float = 0.0   # the driver's clock when the command's (first) write returned
 
     @property
     def scaled(self) -> bool:
@@ -191,16 +192,28 @@ def limit_currents(requested_a: np.ndarray, previous_a: np.ndarray, dt_s: float,
     at a time would turn the field). Then the step from ``previous_a`` is scaled so no channel moves
     faster than its slew limit over ``dt_s``.
     """
-    max_a = np.asarray(limits.max_current_a, dtype=float)
-    slew = np.asarray(limits.slew_a_per_s, dtype=float)
-    magnitude = np.abs(requested_a)
-    over = magnitude > max_a
-    current_scale = float(np.min(max_a[over] / magnitude[over])) if np.any(over) else 1.0
-    target = requested_a * current_scale
-    step = target - previous_a
-    allowed = slew * max(dt_s, 0.0)
-    fast = np.abs(step) > allowed
-    slew_scale = float(np.min(allowed[fast] / np.abs(step[fast]))) if np.any(fast) else 1.0
-    commanded = previous_a + step * slew_scale
+    commanded, current_scale, slew_scale = limit_current_list(
+        np.asarray(requested_a, dtype=float).tolist(), np.asarray(previous_a, dtype=float).tolist(), dt_s, limits)
+    return np.array(commanded), current_scale, slew_scale
+
+
+def limit_current_list(requested_a: list[float], previous_a: list[float], dt_s: float,
+                       limits: AmplifierLimits) -> tuple[list[float], float, float]:
+    """:func:`limit_currents` on plain float lists: what the driver runs on every command (8 channels of
+    float arithmetic cost ~3 us; the same on numpy arrays, a dozen calls of ~2 us each)."""
+    max_a, slew = limits.max_current_a, limits.slew_a_per_s
+    current_scale = 1.0
+    for value, limit in zip(requested_a, max_a):
+        if abs(value) > limit:
+            current_scale = min(current_scale, limit / abs(value))
+    target = [value * current_scale for value in requested_a] if current_scale < 1.0 else list(requested_a)
+    step = [t - p for t, p in zip(target, previous_a)]
+    dt = max(dt_s, 0.0)
+    slew_scale = 1.0
+    for delta, rate in zip(step, slew):
+        allowed = rate * dt
+        if abs(delta) > allowed:
+            slew_scale = min(slew_scale, allowed / abs(delta))
     # Guard against rounding pushing a channel a hair over its limit.
-    return np.clip(commanded, -max_a, max_a), current_scale, slew_scale
+    commanded = [min(max(p + d * slew_scale, -m), m) for p, d, m in zip(previous_a, step, max_a)]
+    return commanded, current_scale, slew_scale

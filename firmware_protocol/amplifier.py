@@ -214,6 +214,10 @@ class UnknownTypeError(FrameError):
 # ---- payload layouts -------------------------------------------------------------------------
 
 _U8 = struct.Struct("<B")
+# Per-channel int32 vectors (SET_CURRENTS, SET_CURRENTS_REPLY) by channel count, compiled once.
+_I32_VECTORS = {n: struct.Struct(f"<{n}i") for n in range(1, MAX_CHANNELS + 1)}
+_I32 = struct.Struct("<i")
+_MSG_TYPES = {int(kind): kind for kind in MsgType}
 _STATE_FAULTS = struct.Struct("<BI")
 _HELLO_HEAD = struct.Struct("<BBBBIHh")       # channels, fw major/minor/patch, serial, watchdog_ms, over_temp_dc
 _HELLO_CHANNEL = struct.Struct("<III")        # rated_ma, max_ma, slew_ma_per_s
@@ -246,7 +250,7 @@ def encode_payload(msg: Message) -> bytes:
         return b""
     if isinstance(msg, SetCurrents):
         n = _same_length(msg.currents_ma)
-        return _U8.pack(n) + struct.pack(f"<{n}i", *msg.currents_ma)
+        return _U8.pack(n) + _I32_VECTORS[n].pack(*msg.currents_ma)
     if isinstance(msg, ConfigureLimits):
         n = _same_length(msg.max_current_ma, msg.slew_ma_per_s)
         body = b"".join(_LIMITS_CHANNEL.pack(m, s) for m, s in zip(msg.max_current_ma, msg.slew_ma_per_s))
@@ -260,7 +264,7 @@ def encode_payload(msg: Message) -> bytes:
     if isinstance(msg, SetCurrentsReply):
         n = _same_length(msg.measured_ma)
         return (_SET_REPLY_HEAD.pack(msg.state, msg.faults, msg.clamped_mask, n)
-                + struct.pack(f"<{n}i", *msg.measured_ma))
+                + _I32_VECTORS[n].pack(*msg.measured_ma))
     if isinstance(msg, Status):
         n = _same_length(msg.setpoint_ma, msg.measured_ma, msg.temperature_dc)
         head = _STATUS_HEAD.pack(msg.state, msg.faults, msg.uptime_ms, msg.last_seq, n)
@@ -296,10 +300,9 @@ def _state(value: int) -> State:
 
 def decode_payload(msg_type: int, payload: bytes) -> Message:
     """The message of type ``msg_type``; raises :class:`UnknownTypeError` or :class:`PayloadError`."""
-    try:
-        kind = MsgType(msg_type)
-    except ValueError as err:
-        raise UnknownTypeError(f"unknown message type 0x{msg_type:02X}") from err
+    kind = _MSG_TYPES.get(msg_type)
+    if kind is None:
+        raise UnknownTypeError(f"unknown message type 0x{msg_type:02X}")
     try:
         return _decode(kind, payload)
     except struct.error as err:
@@ -321,7 +324,7 @@ def _decode(kind: MsgType, payload: bytes) -> Message:
         if not payload:
             raise PayloadError("SET_CURRENTS without a channel count")
         n = payload[0]
-        (currents,) = _unpack_channels(payload, 1, n, struct.Struct("<i"))
+        (currents,) = _unpack_channels(payload, 1, n, _I32)
         return SetCurrents(currents_ma=tuple(currents))
     if kind is MsgType.CONFIGURE_LIMITS:
         watchdog_ms, n = _LIMITS_HEAD.unpack_from(payload)
@@ -335,7 +338,7 @@ def _decode(kind: MsgType, payload: bytes) -> Message:
                           max_current_ma=tuple(max_ma), slew_ma_per_s=tuple(slew))
     if kind is MsgType.SET_CURRENTS_REPLY:
         state, faults, mask, n = _SET_REPLY_HEAD.unpack_from(payload)
-        (measured,) = _unpack_channels(payload, _SET_REPLY_HEAD.size, n, struct.Struct("<i"))
+        (measured,) = _unpack_channels(payload, _SET_REPLY_HEAD.size, n, _I32)
         return SetCurrentsReply(state=_state(state), faults=Fault(faults), clamped_mask=mask,
                                 measured_ma=tuple(measured))
     if kind is MsgType.STATUS:

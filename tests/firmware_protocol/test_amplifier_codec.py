@@ -88,6 +88,44 @@ def test_crc_check_value() -> None:
     assert crc16_ccitt_false(b"123456789") == 0x29B1 == int(VECTORS["crc"]["check"], 16)
 
 
+def _crc_bitwise(data: bytes) -> int:
+    """CRC-16/CCITT-FALSE from its definition, one bit at a time (the reference for the C one)."""
+    crc = 0xFFFF
+    for byte in data:
+        crc ^= byte << 8
+        for _ in range(8):
+            crc = ((crc << 1) ^ 0x1021) & 0xFFFF if crc & 0x8000 else (crc << 1) & 0xFFFF
+    return crc
+
+
+def _cobs_bytewise(data: bytes) -> bytes:
+    """COBS from its definition, one byte at a time (the reference for the split-based encoder)."""
+    out, code_at, code = bytearray([0]), 0, 1
+    for i, byte in enumerate(data):
+        if byte:
+            out.append(byte)
+            code += 1
+        if not byte or code == 0xFF:
+            out[code_at] = code
+            if code == 0xFF and i == len(data) - 1:
+                return bytes(out)
+            code_at, code = len(out), 1
+            out.append(0)
+    out[code_at] = code
+    return bytes(out)
+
+
+# Runs of non-zero bytes around the 254-byte block length, and zeros between them.
+_cobs_edge_cases = st.lists(st.sampled_from([0, 1, 253, 254, 255, 508]), max_size=4).map(
+    lambda lengths: b"\x00".join(bytes([7]) * n for n in lengths))
+
+
+@given(st.binary(max_size=700) | _cobs_edge_cases)
+def test_fast_crc_and_cobs_equal_their_definitions(data: bytes) -> None:
+    assert crc16_ccitt_false(data) == _crc_bitwise(data)
+    assert cobs_encode(data) == _cobs_bytewise(data)
+
+
 @given(st.binary(max_size=700))
 def test_cobs_round_trip_and_no_zero(data: bytes) -> None:
     encoded = cobs_encode(data)
