@@ -28,6 +28,25 @@ _MIN_PLANE_SIN = 0.3
 #: ... and the cluttered view be cluttered this much (fraction of the robot's contrast): below it, its
 #: blob slides less than the noise of the clean view's ray depth, and the triangulated axis line is kept.
 _PLANE_CLUTTER = 0.2
+#: The last calibration seen and, per view, its source position (mm) and focal length (px) as floats.
+_LAST_SCALARS: tuple[Calibration, dict[str, tuple[float, float, float, float]]] | None = None
+
+
+def _view_scalars(calibration: Calibration) -> dict[str, tuple[float, float, float, float]]:
+    """Per view, the source's position (mm) and the focal length (px) as plain floats.
+
+    The checks below run on every frame, where numpy's per-call overhead on 3-vectors (~1 us a call)
+    would cost more than the arithmetic. Calibrations are immutable and a tracker keeps one, so the
+    last one's scalars are kept (compared by identity).
+    """
+    global _LAST_SCALARS
+    if _LAST_SCALARS is None or _LAST_SCALARS[0] is not calibration:
+        scalars = {}
+        for name, view in calibration.views.items():
+            sx, sy, sz = (float(x) for x in view.source_mm)
+            scalars[name] = (sx, sy, sz, float(view.K[0, 0]))
+        _LAST_SCALARS = (calibration, scalars)
+    return _LAST_SCALARS[1]
 
 
 def not_robot_like(calibration: Calibration, rec: Reconstruction, blobs: dict[str, Blob],
@@ -41,13 +60,22 @@ def not_robot_like(calibration: Calibration, rec: Reconstruction, blobs: dict[st
     robot; the path can. A robot is also of bounded length over width. (The two views' widths are
     not compared here: where the robot crosses a vessel one view's width is unreliable, and such
     frames are flagged by the clutter test instead.)
+
+    Plain-float arithmetic (a few microseconds a frame): it runs on every tracked frame.
     """
     s = settings
-    # Widths in mm at the reconstructed centroid (magnification from the source distance).
+    cx, cy, cz = rec.centroid.tolist()
+    # Per view: the ray from the source to the reconstructed centroid, its length, and the blob's
+    # width in mm there (magnification from the source distance).
+    scalars = _view_scalars(calibration)
+    rays: dict[str, tuple[float, float, float, float]] = {}
     widths: dict[str, float] = {}
     for name, blob in blobs.items():
-        view = calibration.views[name]
-        widths[name] = blob.width_px * float(np.linalg.norm(rec.centroid - view.source_mm)) / float(view.K[0, 0])
+        sx, sy, sz, fx = scalars[name]
+        rx, ry, rz = cx - sx, cy - sy, cz - sz
+        distance = math.sqrt(rx * rx + ry * ry + rz * rz)
+        rays[name] = (rx, ry, rz, distance)
+        widths[name] = blob.width_px * distance / fx
     width = 0.5 * (widths["p"] + widths["q"])
     if rec.length_mm is not None and rec.length_mm > s.max_length_over_width * width:
         return (f"no robot-like object in view p and q: the object seen is {rec.length_mm:.1f} mm long and "
@@ -55,14 +83,16 @@ def not_robot_like(calibration: Calibration, rec: Reconstruction, blobs: dict[st
     directions = [rec.direction] if rec.direction is not None else list(rec.candidates or [])
     best: tuple[float, str] | None = None
     for direction in directions:
+        dx, dy, dz = direction.tolist()
         # Per direction hypothesis: the view seeing the axis most side-on, and the rod's chord there.
-        sines = {}
+        side, side_sine = "", -1.0
         for name in blobs:
-            ray = rec.centroid - calibration.views[name].source_mm
-            cosine = abs(float(np.dot(ray, direction))) / float(np.linalg.norm(ray))
-            sines[name] = math.sqrt(max(0.0, 1.0 - cosine * cosine))
-        side = max(sines, key=lambda n: sines[n])
-        mu = blobs[side].peak * max(sines[side], 1e-3) / max(widths[side], 1e-6)
+            rx, ry, rz, distance = rays[name]
+            cosine = abs(rx * dx + ry * dy + rz * dz) / distance
+            sine = math.sqrt(max(0.0, 1.0 - cosine * cosine))
+            if sine > side_sine:
+                side, side_sine = name, sine
+        mu = blobs[side].peak * max(side_sine, 1e-3) / max(widths[side], 1e-6)
         if best is None or mu > best[0]:
             best = (mu, side)
     if best is not None and best[0] < s.min_path_attenuation_per_mm:

@@ -1,0 +1,99 @@
+"""The per-frame plausibility checks of :mod:`appliance.recognition.plausibility` on hand-made inputs.
+
+They run on every tracked frame in plain-float arithmetic with each calibration's source positions and
+focal lengths kept between calls; these tests pin their decisions to the physics they state (the
+attenuation per mm of X-ray path in the view seeing the rod most side-on, the length over width) and
+check that a second calibration is not judged with the first one's numbers.
+"""
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from appliance.geometry import Calibration, View
+from appliance.recognition import RecognitionSettings
+from appliance.recognition.plausibility import cut_by_edge, not_robot_like
+from appliance.recognition.segmentation import Roi
+from drivers.loopback.xray_render import biplane_views
+
+SETTINGS = RecognitionSettings()
+SIZE = (256, 224)
+
+
+def _calibration(fov_w_mm: float) -> Calibration:
+    """Sources on -x (p) and 90 degrees round the vertical (q), 500 mm from the isocentre; the field
+    of view sets the pixel size at the isocentre (``fov_w_mm / 256`` mm)."""
+    views = biplane_views(fov_mm=(fov_w_mm, fov_w_mm * 224 / 256), image_size=SIZE)
+    return Calibration.from_views(*(View(n, v.K, v.dist, v.R, v.t, v.image_size)
+                                    for n, v in (("p", views["p"]), ("q", views["q"]))))
+
+
+def _rec(direction: np.ndarray | None, length_mm: float = 10.0, candidates: list[np.ndarray] | None = None
+         ) -> SimpleNamespace:
+    return SimpleNamespace(centroid=np.zeros(3), direction=direction, length_mm=length_mm, candidates=candidates)
+
+
+def _blobs(peak: float, width_px: float = 8.0) -> dict[str, SimpleNamespace]:
+    return {name: SimpleNamespace(peak=peak, width_px=width_px) for name in ("p", "q")}
+
+
+def _mu_side_on(calibration: Calibration, peak: float, width_px: float) -> float:
+    """Attenuation per mm of path of a rod at the isocentre seen side-on (chord = its width in mm)."""
+    view = calibration.p
+    width_mm = width_px * float(np.linalg.norm(view.source_mm)) / float(view.K[0, 0])
+    return peak / width_mm
+
+
+def test_attenuation_per_mm_of_path_uses_the_calibration_it_is_given() -> None:
+    fine, coarse = _calibration(150.0), _calibration(300.0)  # 0.59 and 1.17 mm per pixel at the isocentre
+    up = np.array([0.0, 0.0, 1.0])  # side-on in both views
+    threshold = SETTINGS.min_path_attenuation_per_mm
+    # A peak that is robot-like over the fine view's chord and contrast-like over the coarse one's.
+    peak = 1.5 * threshold * 8.0 * 150.0 / 256.0
+    assert _mu_side_on(fine, peak, 8.0) == pytest.approx(1.5 * threshold, rel=1e-6)
+    assert not_robot_like(fine, _rec(up), _blobs(peak), SETTINGS) is None
+    reason = not_robot_like(coarse, _rec(up), _blobs(peak), SETTINGS)
+    assert reason is not None and "like contrast medium" in reason
+    assert f"{0.75 * threshold:.2f}/mm" in reason
+    assert not_robot_like(fine, _rec(up), _blobs(peak), SETTINGS) is None  # and back
+
+
+def test_the_path_is_taken_in_the_view_seeing_the_rod_most_side_on() -> None:
+    calibration = _calibration(150.0)
+    peak = 0.8 * SETTINGS.min_path_attenuation_per_mm * 8.0 * 150.0 / 256.0  # side-on: just too weak
+    assert not_robot_like(calibration, _rec(np.array([0.0, 0.0, 1.0])), _blobs(peak), SETTINGS) is not None
+    # Tilted 60 degrees towards p's ray: p sees a chord of w / sin(30 deg), q still sees it side-on,
+    # so q decides and the rod is as weak as before.
+    tilted = np.array([np.cos(np.radians(60.0)), 0.0, np.sin(np.radians(60.0))])
+    reason = not_robot_like(calibration, _rec(tilted), _blobs(peak), SETTINGS)
+    assert reason is not None and "in view q (seen side-on there)" in reason
+    # Unresolved mirror ambiguity: the most metal-like of the candidate directions counts.
+    assert not_robot_like(calibration, _rec(None, candidates=[tilted]), _blobs(peak), SETTINGS) is not None
+    strong = 2.0 * peak
+    assert not_robot_like(calibration, _rec(None, candidates=[tilted, -tilted]), _blobs(strong), SETTINGS) is None
+
+
+def test_a_rod_longer_than_twenty_widths_is_a_stretch_of_vessel() -> None:
+    calibration = _calibration(150.0)
+    width_mm = 8.0 * 150.0 / 256.0
+    strong = 10.0 * width_mm
+    up = np.array([0.0, 0.0, 1.0])
+    assert not_robot_like(calibration, _rec(up, length_mm=19.0 * width_mm), _blobs(strong), SETTINGS) is None
+    reason = not_robot_like(calibration, _rec(up, length_mm=21.0 * width_mm), _blobs(strong), SETTINGS)
+    assert reason is not None and "longer than any robot" in reason
+
+
+def test_a_blob_whose_mask_reaches_the_detector_edge_is_cut() -> None:
+    calibration = _calibration(150.0)
+    mask = np.zeros((6, 10), dtype=bool)
+    mask[2:4, 0:5] = True  # touches its window's left column
+
+    def blob(x0: int) -> SimpleNamespace:
+        return SimpleNamespace(window=Roi(x0, 100, x0 + 10, 106), mask=mask)
+
+    inside = {"p": blob(50), "q": blob(50)}
+    assert cut_by_edge(calibration, inside) is None  # the window's edge is not the detector's
+    reason = cut_by_edge(calibration, {"p": blob(50), "q": blob(0)})
+    assert reason is not None and "edge of view q" in reason
