@@ -60,6 +60,8 @@ class FrameReport:
     latency_ack_s: float | None = None    # ... -> command acknowledged with the measured currents
     stopped: bool = False
     images: tuple[np.ndarray, np.ndarray] | None = None   # the pair's (p, q) images, for the recorder
+    available_s: float | None = None      # time.monotonic() when the later frame of the pair was on the host
+    written_s: float | None = None        # time.monotonic() when the command's write returned
 
     def command_record(self) -> dict[str, Any]:
         return {"frame": self.frame, "mode": self.mode, "reason": self.reason, "tracked": self.tracked,

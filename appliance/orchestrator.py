@@ -24,6 +24,7 @@ The optical tracker is never in the control path: its failure is recorded and th
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -32,6 +33,7 @@ from typing import Any
 
 import numpy as np
 
+from appliance.compiled import warm_up_all
 from appliance.control import CurrentAllocator, Mode, PathFollower, SafetySupervisor
 from appliance.errors import ApplianceError, DeviceError, DeviceFaultError, DeviceTimeoutError, InputDataError
 from appliance.geometry import Calibration, dark_level_of
@@ -154,6 +156,9 @@ class Orchestrator:
                 self.ots.wait_for_frame(timeout_s=self.settings.startup_timeout_s)
             except DeviceError as err:
                 raise DeviceTimeoutError(f"optical tracker {self.names.get('ots', '')}: {err}") from err
+        # Every compiled kernel (recognition, control) now, while the output is still off: no frame
+        # pays for compilation (a first call can take seconds; from the on-disk cache, milliseconds).
+        warm_up_all()
         self.amplifier.add_listener(self._on_amplifier_event)
         self.amplifier.enable()
         self._commanded = np.zeros(self._n)
@@ -223,8 +228,6 @@ class Orchestrator:
         tracked = False
         if pair is not None:
             posture = self.tracker.process(pair.p.image, pair.q.image, frame=pair.number, t=now)
-            for name, us in posture.timings_us.items():
-                stages[f"recognition.{name}"] = us
             tracked = posture.ok and posture.centroid_mm is not None
             if tracked and not self._plausible(posture.centroid_mm, now):
                 # A robot cannot jump: a far-off "robot" is something else (a contrast-filled vessel
@@ -244,22 +247,20 @@ class Orchestrator:
             if axis is None:
                 axis = self.follower.tangent_at(self.follower.nearest(centroid)[0])
             if self._last_tracked is not None and now > self._last_tracked[0]:
-                speed = float(np.linalg.norm(centroid - self._last_tracked[1]) / (now - self._last_tracked[0]))
+                step = centroid - self._last_tracked[1]
+                speed = math.sqrt(float(step @ step)) / (now - self._last_tracked[0])
             self._last_tracked = (now, centroid.copy())
             self._position = centroid.copy()
             command = self.follower.command(centroid, axis, now)
         decision = self.safety.update(now, tracked, command.field_T if command else None,
                                       command.force_N if command else None, speed)
         stages["control"] = (time.perf_counter() - mark) * 1e6
-        for event in self.safety.events[self._safety_seen:]:
-            self._notify("on_fault", event.t_s, {"device": "safety", "reason": event.reason, "mode": event.mode.value,
-                                                 "previous": event.previous.value, "step": self.stats.steps})
-        self._safety_seen = len(self.safety.events)
         if decision.mode is Mode.STOP:
+            self._notify_safety_events()
             return self._latch("safety", decision.reason or "safety stop", stages=stages)
 
         mark = time.perf_counter()
-        field_norm = float(np.linalg.norm(decision.field_T))
+        field_norm = math.sqrt(float(decision.field_T @ decision.field_T))
         if field_norm > 0.0:
             self._moment_dir = decision.field_T / field_norm
         position = self._position if self._position is not None else np.zeros(3)
@@ -268,7 +269,8 @@ class Orchestrator:
                                              1.0 / self.settings.fps)
         stages["allocation"] = (time.perf_counter() - mark) * 1e6
 
-        mark = time.perf_counter()
+        # The command goes out now; everything that can wait (safety events, the report, listeners such
+        # as the recorder, the side channels) comes after it.
         sent = time.monotonic()
         try:
             result = self.amplifier.set_currents(allocation.currents_a)
@@ -277,13 +279,19 @@ class Orchestrator:
         except DeviceError as err:
             return self._latch("amplifier", f"amplifier link: {err}", stages=stages, link_lost=True)
         acked = time.monotonic()
+        # The driver's clock is time.monotonic (the frames' host clock) unless a test injected another.
+        written = result.written_at_s if sent <= result.written_at_s <= acked else sent
         stages["amplifier"] = (acked - sent) * 1e6
+        stages["amplifier_write"] = (written - sent) * 1e6
         self._commanded = result.commanded_a
-        latency_write = latency_ack = None
+        self._notify_safety_events()
+        if posture is not None:
+            for name, us in posture.timings_us.items():
+                stages[f"recognition.{name}"] = us
+        latency_write = latency_ack = available = None
         if pair is not None:
             available = max(pair.p.host_time_s, pair.q.host_time_s)
-            # The bytes go out right after the driver's limit check, microseconds after `sent`.
-            latency_write = sent - available
+            latency_write = written - available
             latency_ack = acked - available
             self.stats.latency_write_s.append(latency_write)
             self.stats.latency_ack_s.append(latency_ack)
@@ -297,7 +305,8 @@ class Orchestrator:
             field_T=np.asarray(decision.field_T, float), force_N=np.asarray(decision.force_N, float),
             commanded_a=result.commanded_a, measured_a=result.measured_a, scale=allocation.scale,
             limited_by=allocation.limited_by, stages_us=stages, latency_write_s=latency_write,
-            latency_ack_s=latency_ack, images=(pair.p.image, pair.q.image) if pair is not None else None)
+            latency_ack_s=latency_ack, images=(pair.p.image, pair.q.image) if pair is not None else None,
+            available_s=available, written_s=written)
         self._side_channels(now)
         stages["total"] = (time.perf_counter() - began) * 1e6
         self.stats.step_s.append(stages["total"] / 1e6)
@@ -309,6 +318,13 @@ class Orchestrator:
         return report
 
     # -- helpers ------------------------------------------------------------------------------------
+    def _notify_safety_events(self) -> None:
+        """The supervisor's changes of mode since the last call, to the listeners."""
+        for event in self.safety.events[self._safety_seen:]:
+            self._notify("on_fault", event.t_s, {"device": "safety", "reason": event.reason, "mode": event.mode.value,
+                                                 "previous": event.previous.value, "step": self.stats.steps})
+        self._safety_seen = len(self.safety.events)
+
     def _next_pair(self) -> tuple[BiplanePair | None, str | None]:
         try:
             return self.frames.next_pair(self.settings.pair_timeout_s), None
