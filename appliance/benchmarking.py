@@ -24,19 +24,23 @@ figures are what the table and the JSON report.
 """
 from __future__ import annotations
 
+import cProfile
 import logging
 import math
 import os
 import platform
+import pstats
 import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Protocol
 
 import cv2
 import numpy as np
 
+from appliance.compiled import warm_up_all
 from appliance.control import ActuationModel, CurrentAllocator, PathFollower, SafetySupervisor, load_coils, load_path
 from appliance.geometry import Calibration
 from appliance.recognition import PostureTracker, RecognitionSettings
@@ -154,6 +158,7 @@ class BenchResult:
     tracking: dict[str, int]
     simulation: dict[str, Any] | None = None
     notes: list[str] = field(default_factory=list)
+    profile: list[dict[str, Any]] = field(default_factory=list)   # --profile: top functions of the steady step
 
     def ratio(self, numerator: float | None, denominator: float | None) -> float | None:
         if numerator is None or denominator is None or denominator <= 0:
@@ -197,7 +202,7 @@ class BenchResult:
                 "memory_floor_us": self.memory_floor_us, "baseline_ratio": self.baseline_ratio,
                 "cold_floor_ratio": self.cold_floor_ratio, "loop_us": self.loop_us, "fps": self.fps(),
                 "tracking": self.tracking, "simulation": self.simulation, "targets": self.targets(),
-                "notes": self.notes}
+                "profile": self.profile, "notes": self.notes}
 
 
 def machine() -> dict[str, Any]:
@@ -213,15 +218,46 @@ def _control_chain() -> tuple[PathFollower, SafetySupervisor, CurrentAllocator]:
     return PathFollower(load_path()), SafetySupervisor(), CurrentAllocator(ActuationModel(load_coils()))
 
 
+def _control_step(chain: tuple[PathFollower, SafetySupervisor, CurrentAllocator], posture: Any, t: float,
+                  commanded: np.ndarray, dt: float, moment_am2: float) -> Any:
+    """Path follower, safety supervisor and current allocation on one posture, as the orchestrator
+    runs them: the currents to command (an :class:`~appliance.control.Allocation`)."""
+    follower, safety, allocator = chain
+    if posture.ok and posture.centroid_mm is not None:
+        axis = posture.direction if posture.direction is not None else np.array([1.0, 0.0, 0.0])
+        command = follower.command(posture.centroid_mm, axis, t)
+        decision = safety.update(t, True, command.field_T, command.force_N, None)
+        position = posture.centroid_mm
+    else:
+        decision = safety.update(t, False, None, None, None)
+        position = np.zeros(3)
+    field_norm = math.sqrt(float(decision.field_T @ decision.field_T))
+    moment = moment_am2 * (decision.field_T / field_norm if field_norm > 0 else np.array([0.0, 0.0, 1.0]))
+    return allocator.allocate(position, decision.field_T, decision.force_N, moment, commanded, dt)
+
+
+def profile_rows(stats: pstats.Stats, pairs: int, top: int = 15) -> list[dict[str, Any]]:
+    """The ``top`` functions of a cProfile run by cumulative time, per pair (us, calls)."""
+    rows = []
+    for (file, line, name), (_, calls, own, cumulative, _) in stats.stats.items():  # type: ignore[attr-defined]
+        where = name if file == "~" else f"{Path(file).parent.name}/{Path(file).name}:{line}({name})"
+        rows.append({"function": where, "calls_per_pair": calls / pairs, "cumulative_us": cumulative / pairs * 1e6,
+                     "own_us": own / pairs * 1e6})
+    rows.sort(key=lambda row: -row["cumulative_us"])
+    return [row for row in rows if "disable' of '_lsprof" not in row["function"]][:top]
+
+
 def run_bench(source: FrameSource, frames: int, amplifier_factory: Callable[[Any], Any] | None = None,
               amplifier_url: str | None = None, moment_am2: float = 1e-3,
               progress: Callable[[str], None] | None = None,
-              settings: RecognitionSettings | None = None) -> BenchResult:
+              settings: RecognitionSettings | None = None, profile_pairs: int = 0) -> BenchResult:
     """Measure ``frames`` pairs of ``source`` (see the module docstring); ``amplifier_url`` is a served
     amplifier (pty path or TCP address) for the command stage, skipped when None. ``amplifier_factory``
     builds the driver from an open port (default :class:`drivers.amplifier.Amplifier`, with its
     heartbeat: rendering a frame and the cold detection come between two commands). ``moment_am2`` is
-    the robot's magnetic moment, for the force allocation."""
+    the robot's magnetic moment, for the force allocation. ``profile_pairs`` more pairs after the
+    measured ones go through the steady-state step (recognition, control, allocation, command) under
+    cProfile, for :attr:`BenchResult.profile` (the measured figures are taken without the profiler)."""
     from drivers.amplifier import Amplifier
     from drivers.transport import open_serial
 
@@ -229,7 +265,9 @@ def run_bench(source: FrameSource, frames: int, amplifier_factory: Callable[[Any
     calibration = source.calibration
     steady = PostureTracker(calibration, settings)
     cold = PostureTracker(calibration, settings)
-    follower, safety, allocator = _control_chain()
+    chain = _control_chain()
+    # Every compiled kernel (recognition's, control's) before the first frame: no frame pays for it.
+    warm_up_s = warm_up_all()
     samples = {mode: _Samples() for mode in MODES}
     baseline_us: list[float] = []
     floor_us: list[float] = []
@@ -242,16 +280,18 @@ def run_bench(source: FrameSource, frames: int, amplifier_factory: Callable[[Any
         port = _TimedPort(open_serial(amplifier_url, timeout=0.05))
         amplifier = (amplifier_factory or Amplifier)(port)
         amplifier.enable()
-    commanded = np.zeros(allocator.model.n)
+    commanded = np.zeros(chain[2].model.n)
     dt = 1.0 / source.fps
     perf = time.perf_counter
     # CPU time of this thread: what the step costs when other processes share the cores (the wall
     # time then includes waiting for a core). OpenCV's worker threads are not in it.
     cpu_time = time.thread_time_ns
+    pairs = iter(source.pairs())
+    profile: list[dict[str, Any]] = []
+    image_p = np.zeros((0, 0))
     try:
-        for n, (image_p, image_q) in enumerate(source.pairs()):
-            if n >= frames:
-                break
+        for n in range(frames):
+            image_p, image_q = next(pairs)
             t = n * dt
             tracking["frames"] += 1
             # -- steady state, then the whole in-process loop (frame available -> command written)
@@ -270,17 +310,7 @@ def run_bench(source: FrameSource, frames: int, amplifier_factory: Callable[[Any
                     tracking["fallback_full"] += 1
                 tracking["lost_roi"] += not posture.ok
             mark = perf()
-            if posture.ok and posture.centroid_mm is not None:
-                axis = posture.direction if posture.direction is not None else np.array([1.0, 0.0, 0.0])
-                command = follower.command(posture.centroid_mm, axis, t)
-                decision = safety.update(t, True, command.field_T, command.force_N, None)
-                position = posture.centroid_mm
-            else:
-                decision = safety.update(t, False, None, None, None)
-                position = np.zeros(3)
-            field_norm = float(np.linalg.norm(decision.field_T))
-            moment = moment_am2 * (decision.field_T / field_norm if field_norm > 0 else np.array([0.0, 0.0, 1.0]))
-            allocation = allocator.allocate(position, decision.field_T, decision.force_N, moment, commanded, dt)
+            allocation = _control_step(chain, posture, t, commanded, dt, moment_am2)
             allocated = perf()
             samples["roi"].add("control_allocation", (allocated - mark) * 1e6)
             if amplifier is not None and port is not None:
@@ -318,6 +348,18 @@ def run_bench(source: FrameSource, frames: int, amplifier_factory: Callable[[Any
             floor_us.append((perf() - began) * 1e6)
             if progress is not None:
                 progress(f"frame {n + 1}/{frames}")
+        if profile_pairs > 0:
+            profiler = cProfile.Profile()
+            for n in range(frames, frames + profile_pairs):
+                image_p, image_q = next(pairs)
+                t = n * dt
+                profiler.enable()
+                posture = steady.process(image_p, image_q, frame=n, t=t)
+                allocation = _control_step(chain, posture, t, commanded, dt, moment_am2)
+                commanded = (amplifier.set_currents(allocation.currents_a).commanded_a if amplifier is not None
+                             else allocation.currents_a)
+                profiler.disable()
+            profile = profile_rows(pstats.Stats(profiler), profile_pairs)
     finally:
         if amplifier is not None:
             amplifier.shutdown()
@@ -328,9 +370,10 @@ def run_bench(source: FrameSource, frames: int, amplifier_factory: Callable[[Any
         stages["full"][stage] = stages["roi"][stage]
     config = {"frames": tracking["frames"], "image_size": list(image_p.shape[::-1]) if tracking["frames"] else None,
               "fps": source.fps, "amplifier": amplifier_url is not None, "estimator": settings.estimator,
-              "machine": machine()}
+              "machine": machine(), "warm_up_s": round(warm_up_s, 3), "profile_pairs": profile_pairs}
     return BenchResult(config=config, stages=stages, baseline_us=percentiles(baseline_us),
-                       memory_floor_us=percentiles(floor_us), loop_us=percentiles(loop_us), tracking=tracking)
+                       memory_floor_us=percentiles(floor_us), loop_us=percentiles(loop_us), tracking=tracking,
+                       profile=profile)
 
 
 def run_simulation(seconds: float, image_size: tuple[int, int] | None = None,
@@ -357,9 +400,12 @@ def run_simulation(seconds: float, image_size: tuple[int, int] | None = None,
     steps: dict[str, list[float]] = {}
 
     def on_step(report: Any, truth: Any) -> None:
-        for name in ("recognition", "control", "allocation", "amplifier", "total"):
-            if name in report.stages_us:
-                steps.setdefault(name, []).append(report.stages_us[name])
+        stages = report.stages_us
+        for name in ("recognition", "control", "allocation", "amplifier", "amplifier_write", "total"):
+            if name in stages:
+                steps.setdefault(name, []).append(stages[name])
+        if "control" in stages and "allocation" in stages:
+            steps.setdefault("control_allocation", []).append(stages["control"] + stages["allocation"])
         if progress is not None:
             progress(f"simulation: t {report.t_s:.2f} s, frame {report.frame}")
 
@@ -420,6 +466,10 @@ def format_table(result: BenchResult) -> str:
                      f"p50 {_f(tot.get('p50'), '.0f')} p99 {_f(tot.get('p99'), '.0f')} us, recognition p50 "
                      f"{_f(rec.get('p50'), '.0f')} p99 {_f(rec.get('p99'), '.0f')} us; pair on host -> written "
                      f"p50 {_f(sim['latency_write_us']['p50'], '.0f')} p99 {_f(sim['latency_write_us']['p99'], '.0f')} us")
+        ctl, wr = st.get("control_allocation", {}), st.get("amplifier_write", {})
+        lines.append(f"  its control + allocation p50 {_f(ctl.get('p50'), '.0f')} p99 {_f(ctl.get('p99'), '.0f')} us, "
+                     f"amplifier written p50 {_f(wr.get('p50'), '.0f')} p99 {_f(wr.get('p99'), '.0f')} us "
+                     f"(in-process amplifier fake on a pty, sharing the GIL with the world and the grabbers)")
     t = result.tracking
     lines.append(f"tracking: {t['roi']} ROI frames, {t['fallback_full']} fell back to full frame, lost "
                  f"{t['lost_roi']} (steady) / {t['lost_full']} (cold) of {t['frames']}")
@@ -428,4 +478,13 @@ def format_table(result: BenchResult) -> str:
         f"{'met' if v['met'] else 'NOT met' if v['met'] is not None else 'n/a'})"
         for name, v in result.targets().items()))
     lines.extend(f"note: {note}" for note in result.notes)
+    if result.profile:
+        pairs = cfg.get("profile_pairs", "?")
+        lines.append("")
+        lines.append(f"profile of the steady-state step (recognition, control, allocation, command) over {pairs} more "
+                     f"pairs, cProfile (it adds ~1 us per Python call), per pair:")
+        lines.append(f"{'cumul. us':>10} {'own us':>8} {'calls':>6}  function")
+        for row in result.profile:
+            lines.append(f"{row['cumulative_us']:10.0f} {row['own_us']:8.0f} {row['calls_per_pair']:6.1f}  "
+                         f"{row['function']}")
     return "\n".join(lines)

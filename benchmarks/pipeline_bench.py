@@ -6,14 +6,16 @@ command written) and the closed loop in simulation. Asserts nothing; the figures
 and its load, which the table's first line states.
 
     .venv/bin/python benchmarks/pipeline_bench.py [--json FILE] [--frames N] [--size 1024] [--sim-seconds S]
+                                                  [--profile [N]]
     .venv/bin/python benchmarks/pipeline_bench.py --numba [--size 1024]
-    .venv/bin/python benchmarks/pipeline_bench.py --profile roi|full [--frames N] [--size 1024]
+    .venv/bin/python benchmarks/pipeline_bench.py --profile-recognition roi|full [--frames N] [--size 1024]
 
-``--profile`` runs the steady-state (``roi``) or cold (``full``) recognition under cProfile and prints
-where the time goes: per recognition function, the share of the total and the time per frame pair.
+``--profile [N]`` (the bench's own) adds the top functions of N more steady-state steps (recognition,
+control, allocation, command) to the table. ``--profile-recognition`` runs only the steady-state
+(``roi``) or cold (``full``) recognition under cProfile and prints where its time goes: per recognition
+function, the share of the total and the time per frame pair.
 
-``--numba`` measures instead what a compiled kernel would give (numba is not a project dependency:
-``.venv/bin/python -m pip install numba`` first): the per-pixel work of one view's ROI step (attenuation
+``--numba`` measures instead what a compiled kernel would give: the per-pixel work of one view's ROI step (attenuation
 from the raw 16-bit ROI through a log table, the core threshold, weighted moments, principal axis and
 axial profile) as one numba kernel, against the same arithmetic in numpy and against our
 ``segment`` + ``features`` on the same region of interest of a rendered frame.
@@ -213,12 +215,13 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     bench.add_arguments(parser)
     parser.add_argument("--numba", action="store_true", help="measure the compiled-kernel option instead (see above)")
-    parser.add_argument("--profile", choices=("roi", "full"), help="profile the recognition instead (see above)")
+    parser.add_argument("--profile-recognition", choices=("roi", "full"),
+                        help="profile the recognition alone instead (see above)")
     args = parser.parse_args(argv)
     if args.numba:
         return numba_option(args.size)
-    if args.profile:
-        return profile(args.profile, min(args.frames, 100), args.size)
+    if args.profile_recognition:
+        return profile(args.profile_recognition, min(args.frames, 100), args.size)
     return bench.run(args)
 
 

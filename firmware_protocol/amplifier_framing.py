@@ -52,6 +52,9 @@ def crc16_ccitt_false(data: bytes, crc: int = 0xFFFF) -> int:
     return binascii.crc_hqx(data, crc)
 
 
+_CODE_BYTES = tuple(bytes((code,)) for code in range(256))
+
+
 def cobs_encode(data: bytes) -> bytes:
     """Consistent Overhead Byte Stuffing (Cheshire & Baker): the result contains no 0x00.
 
@@ -59,9 +62,11 @@ def cobs_encode(data: bytes) -> bytes:
     follows one at the very end (``01..FE`` encodes as ``FF 01..FE``).
 
     Built from ``bytes.split`` on the zeros (each zero-free run is one or more blocks), not byte by
-    byte: a 45-byte SET_CURRENTS packet encodes in ~1 us instead of ~10.
+    byte: a 45-byte SET_CURRENTS packet encodes in 1-6 us (as many zeros, as many runs) instead of ~9.
     """
     runs = data.split(b"\x00")
+    if len(data) < 254:   # no run fills a block: one code byte (run length + 1) before each run
+        return b"".join([_CODE_BYTES[len(run) + 1] + run for run in runs])
     out = bytearray()
     last = len(runs) - 1
     for index, run in enumerate(runs):

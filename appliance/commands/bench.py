@@ -6,15 +6,19 @@ moves along the operator's path (``config/vessel.yaml``) at ``--speed`` mm/s ins
 vessel, seen by the two planes of ``config/sim.yaml``'s geometry (plane q 15 deg elevated, both
 turned -45 deg), with quantum noise, blur and a non-uniform field. Each pair is rendered, then
 measured (see :mod:`appliance.benchmarking`); the amplifier command goes to the loopback amplifier
-served on a pseudo-terminal. This module builds the fakes (commands may import the loopback package;
-:mod:`appliance.benchmarking` does not).
+served on a pseudo-terminal by a separate process, as a real amplifier is a separate device: served
+from a thread of this process instead (``--amplifier-in-process``), its polling competes with the loop
+for the GIL and a write can wait milliseconds for it to be handed back. This module builds the fakes
+(commands may import the loopback package; :mod:`appliance.benchmarking` does not).
 
-    appliance bench [--json FILE] [--frames N] [--size 1024] [--sim-seconds S]
+    appliance bench [--json FILE] [--frames N] [--size 1024] [--sim-seconds S] [--profile [N]]
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import subprocess
 import sys
 from collections.abc import Iterator
 from pathlib import Path
@@ -61,6 +65,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="simulated seconds of the closed loop of config/sim.yaml (0: skip; default 3)")
     parser.add_argument("--no-amplifier", action="store_true",
                         help="leave out the amplifier command (the loop then ends at the allocation)")
+    parser.add_argument("--amplifier-in-process", action="store_true",
+                        help="serve the loopback amplifier from a thread of this process (default: its own process)")
+    parser.add_argument("--profile", metavar="N", type=integer_at_least(1), nargs="?", const=30, default=0,
+                        help="after the measured pairs, profile N more (default 30) steady-state steps and print "
+                             "where the time goes")
 
 
 class RenderedScene:
@@ -112,6 +121,47 @@ class RenderedScene:
             n += 1
 
 
+#: What the amplifier's own process runs: the loopback amplifier on a pty, path on the first line,
+#: until its standard input closes.
+_SERVE_AMPLIFIER = """
+import sys
+from drivers.loopback.amplifier_fake import FakeAmplifier, FakeAmplifierConfig
+from drivers.loopback.serve import PtyServer
+config = FakeAmplifierConfig(channels=int(sys.argv[1]), watchdog_ms=int(sys.argv[2]))
+with PtyServer(FakeAmplifier(config)) as server:
+    print(server.path, flush=True)
+    sys.stdin.read()
+"""
+
+
+@contextlib.contextmanager
+def served_amplifier(channels: int, watchdog_ms: int = 1000, in_process: bool = False) -> Iterator[str]:
+    """The loopback amplifier served on a pty (its path), by its own process unless ``in_process``."""
+    if in_process:
+        from drivers.loopback.amplifier_fake import FakeAmplifier, FakeAmplifierConfig
+        from drivers.loopback.serve import PtyServer
+
+        with PtyServer(FakeAmplifier(FakeAmplifierConfig(channels=channels, watchdog_ms=watchdog_ms))) as server:
+            yield server.path
+        return
+    process = subprocess.Popen([sys.executable, "-c", _SERVE_AMPLIFIER, str(channels), str(watchdog_ms)],
+                               stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert process.stdout is not None
+        path = process.stdout.readline().strip()
+        if not path:
+            raise RuntimeError(f"the loopback amplifier process did not start (exit status {process.wait(5)})")
+        yield path
+    finally:
+        if process.stdin is not None:
+            process.stdin.close()   # the server's read returns: it closes the pty and exits
+        try:
+            process.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+
+
 class _Progress:
     """Progress on stderr: a rewritten line on a terminal, a line every 10 % otherwise."""
 
@@ -141,26 +191,30 @@ class _Progress:
 
 
 def measure(frames: int = 300, size: int = 1024, robot_id: int = 1, speed_mm_s: float = 8.0, seed: int = 0,
-            sim_seconds: float = 3.0, amplifier: bool = True, progress: Any = None) -> Any:
+            sim_seconds: float = 3.0, amplifier: bool = True, progress: Any = None, profile_pairs: int = 0,
+            amplifier_in_process: bool = False) -> Any:
     """The whole benchmark: returns an :class:`appliance.benchmarking.BenchResult` (used by the CLI and
     ``benchmarks/pipeline_bench.py``)."""
     from appliance.benchmarking import run_bench, run_simulation
     from appliance.control import load_coils
-    from drivers.loopback.amplifier_fake import FakeAmplifier, FakeAmplifierConfig
-    from drivers.loopback.serve import PtyServer
 
     scene = RenderedScene(size, robot_id, speed_mm_s, seed)
     moment = scene.robot.magnetic_moment_am2
     if amplifier:
-        coils = load_coils()
-        config = FakeAmplifierConfig(channels=len(coils.coils), watchdog_ms=1000)
-        with PtyServer(FakeAmplifier(config)) as server:
-            result = run_bench(scene, frames, amplifier_url=server.path, moment_am2=moment, progress=progress)
+        with served_amplifier(len(load_coils().coils), in_process=amplifier_in_process) as path:
+            result = run_bench(scene, frames, amplifier_url=path, moment_am2=moment, progress=progress,
+                               profile_pairs=profile_pairs)
     else:
-        result = run_bench(scene, frames, moment_am2=moment, progress=progress)
-    result.config.update({"robot": robot_id, "speed_mm_s": speed_mm_s, "seed": seed})
+        result = run_bench(scene, frames, moment_am2=moment, progress=progress, profile_pairs=profile_pairs)
+    result.config.update({"robot": robot_id, "speed_mm_s": speed_mm_s, "seed": seed,
+                          "amplifier_served_by": None if not amplifier else
+                          "a thread of this process" if amplifier_in_process else "its own process"})
     if not amplifier:
         result.notes.append("no amplifier: the loop is recognition + control + allocation")
+    else:
+        result.notes.append("amplifier: the loopback amplifier on a pty, served by "
+                            + ("a thread of this process (shares the GIL with the loop)" if amplifier_in_process
+                               else "its own process, as a real amplifier is a separate device"))
     result.notes.append("loop = frame available -> SET_CURRENTS written to the pty (ROI recognition, control, "
                         "allocation, the driver's limit check and encoding, the write call); the line's transfer "
                         "and the acknowledgement are not in it ('amplifier: acked' is the round trip)")
@@ -179,7 +233,8 @@ def run(args: argparse.Namespace) -> int:
           file=sys.stderr, flush=True)
     try:
         result = measure(args.frames, args.size, args.robot, args.speed, args.seed, args.sim_seconds,
-                         not args.no_amplifier, progress)
+                         not args.no_amplifier, progress, profile_pairs=args.profile,
+                         amplifier_in_process=args.amplifier_in_process)
     finally:
         progress.end()
     print(format_table(result))

@@ -26,7 +26,8 @@ FRAMES = 5
 @pytest.fixture(scope="module")
 def bench_json(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     out = tmp_path_factory.mktemp("bench") / "bench.json"
-    status = main(["bench", "--frames", str(FRAMES), "--size", "320", "--sim-seconds", "0.2", "--json", str(out)])
+    status = main(["bench", "--frames", str(FRAMES), "--size", "320", "--sim-seconds", "0.2", "--profile", "2",
+                   "--json", str(out)])
     assert status == 0
     return json.loads(out.read_text())
 
@@ -60,6 +61,18 @@ def test_every_frame_is_measured_and_tracked(bench_json: dict[str, Any]) -> None
     assert bench_json["config"]["image_size"] == [320, 320]
     sim = bench_json["simulation"]
     assert sim["pairs"] >= 1 and sim["latency_write_us"]["n"] >= 1
+
+
+def test_profile_names_where_the_steady_step_spends_its_time(bench_json: dict[str, Any]) -> None:
+    rows = bench_json["profile"]
+    assert bench_json["config"]["profile_pairs"] == 2 and 0 < len(rows) <= 15
+    cumulative = [row["cumulative_us"] for row in rows]
+    assert cumulative == sorted(cumulative, reverse=True) and cumulative[-1] > 0.0
+    names = " ".join(row["function"] for row in rows)
+    assert "tracker.py" in names and "(process)" in names
+    # The amplifier was a separate process: its fake's code is not in this process's profile.
+    assert bench_json["config"]["amplifier_served_by"] == "its own process"
+    assert "amplifier_fake" not in names
 
 
 def test_table_names_every_stage(bench_json: dict[str, Any], capsys: pytest.CaptureFixture[str]) -> None:
