@@ -91,6 +91,80 @@ def noise_sigma_of(a):  # pragma: no cover - compiled
     return 1.4826 * float(median_inplace(d, n)) / math.sqrt(2.0)
 
 
+#: Histogram bins of the float32 noise median: the top 13 bits of a non-negative float32 (exponent and
+#: 4 mantissa bits, 16 bins an octave), so the bins containing the median hold a few percent of the values.
+_BIN_SHIFT = 19
+_N_BINS = 1 << (31 - _BIN_SHIFT)
+
+
+@kernel
+def _select_in_bins(values, bits, lo_bin, hi_bin, shift, k):  # pragma: no cover - compiled
+    """The ``(k-1)``-th and ``k``-th smallest of the ``values`` whose ``bits >> shift`` lies in
+    ``[lo_bin, hi_bin]`` (the first is the second if ``k`` is 0)."""
+    m = 0
+    for i in range(bits.size):
+        b = bits[i] >> shift
+        if b >= lo_bin and b <= hi_bin:
+            m += 1
+    buf = np.empty(m, dtype=values.dtype)
+    m = 0
+    for i in range(bits.size):
+        b = bits[i] >> shift
+        if b >= lo_bin and b <= hi_bin:
+            buf[m] = values[i]
+            m += 1
+    upper = _select(buf, m, k)
+    lower = upper
+    if k > 0:
+        lower = buf[0]
+        for i in range(1, k):
+            lower = max(lower, buf[i])
+    return lower, upper
+
+
+@kernel
+def noise_sigma_f32(a):  # pragma: no cover - compiled
+    """:func:`noise_sigma_of` for float32 images: the same order statistic, found by a histogram of the
+    differences' bit patterns (monotonic in the value for non-negative floats) and a selection among
+    the few values in the bins holding the median, instead of partitioning every difference."""
+    h, w = a.shape
+    if w < 2 or h == 0:
+        return np.nan
+    n = h * (w - 1)
+    d = np.empty(n, dtype=np.float32)
+    k = 0
+    for y in range(h):
+        row = a[y]
+        for x in range(w - 1):
+            d[k] = abs(row[x + 1] - row[x])
+            k += 1
+    bits = d.view(np.uint32)
+    # Two histograms, alternating, so that runs of equal bins do not wait on each other's increments.
+    hist = np.zeros((2, _N_BINS), dtype=np.int64)
+    for i in range(0, n - 1, 2):
+        hist[0, bits[i] >> _BIN_SHIFT] += 1
+        hist[1, bits[i + 1] >> _BIN_SHIFT] += 1
+    if n % 2:
+        hist[0, bits[n - 1] >> _BIN_SHIFT] += 1
+    # The bins of the (k-1)-th and k-th smallest, and how many values lie below the first.
+    upper_rank = n // 2
+    lower_rank = upper_rank - 1 if n % 2 == 0 else upper_rank
+    below, b_lo, b_hi, base = 0, -1, -1, 0
+    for b in range(_N_BINS):
+        c = hist[0, b] + hist[1, b]
+        if b_lo < 0 and below + c > lower_rank:
+            b_lo, base = b, below
+        if below + c > upper_rank:
+            b_hi = b
+            break
+        below += c
+    if b_hi < 0:  # NaN differences beyond every bin: as numpy, the median is NaN
+        return np.nan
+    lower, upper = _select_in_bins(d, bits, b_lo, b_hi, _BIN_SHIFT, upper_rank - base)
+    med = upper if n % 2 else (lower + upper) / np.float32(2.0)
+    return 1.4826 * float(med) / math.sqrt(2.0)
+
+
 # ------------------------------------------------------------------------------------------ attenuation
 @kernel
 def attenuation_from_coarse(image, y0, y1, x0, x1, coarse, fy, fx, log_table):  # pragma: no cover
@@ -141,24 +215,31 @@ def attenuation_from_dense(image, log_bg, log_table):  # pragma: no cover - comp
 # ---------------------------------------------------------------------------- smoothing and components
 @kernel
 def gaussian5(a, g):  # pragma: no cover - compiled
-    """5x5 separable Gaussian ``g`` with replicated borders (cv2.GaussianBlur's BORDER_REPLICATE), float32."""
+    """5x5 separable Gaussian ``g`` with replicated borders (cv2.GaussianBlur's BORDER_REPLICATE), float32.
+
+    Rows first, then columns; each output is ``g0 v0 + g1 v1 + ... + g4 v4`` summed in that order.
+    The interior runs without index clamping so that the compiler vectorises it."""
     h, w = a.shape
+    g0, g1, g2, g3, g4 = g[0], g[1], g[2], g[3], g[4]
     tmp = np.empty((h, w), dtype=np.float32)
     for y in range(h):
-        for x in range(w):
-            acc = np.float32(0.0)
-            for k in range(5):
-                xx = min(max(x + k - 2, 0), w - 1)
-                acc += g[k] * a[y, xx]
-            tmp[y, x] = acc
+        row = a[y]
+        t = tmp[y]
+        for x in range(min(2, w)):
+            t[x] = (g0 * row[max(x - 2, 0)] + g1 * row[max(x - 1, 0)] + g2 * row[x]
+                    + g3 * row[min(x + 1, w - 1)] + g4 * row[min(x + 2, w - 1)])
+        for x in range(2, w - 2):
+            t[x] = g0 * row[x - 2] + g1 * row[x - 1] + g2 * row[x] + g3 * row[x + 1] + g4 * row[x + 2]
+        for x in range(max(w - 2, 2), w):
+            t[x] = (g0 * row[max(x - 2, 0)] + g1 * row[max(x - 1, 0)] + g2 * row[x]
+                    + g3 * row[min(x + 1, w - 1)] + g4 * row[min(x + 2, w - 1)])
     out = np.empty((h, w), dtype=np.float32)
     for y in range(h):
+        r0, r1, r3, r4 = tmp[max(y - 2, 0)], tmp[max(y - 1, 0)], tmp[min(y + 1, h - 1)], tmp[min(y + 2, h - 1)]
+        r2 = tmp[y]
+        o = out[y]
         for x in range(w):
-            acc = np.float32(0.0)
-            for k in range(5):
-                yy = min(max(y + k - 2, 0), h - 1)
-                acc += g[k] * tmp[yy, x]
-            out[y, x] = acc
+            o[x] = g0 * r0[x] + g1 * r1[x] + g2 * r2[x] + g3 * r3[x] + g4 * r4[x]
     return out
 
 
@@ -171,77 +252,76 @@ def _find(parent, i):  # pragma: no cover - compiled
 
 
 @kernel
-def label_components(mask):  # pragma: no cover - compiled
-    """8-connected components of a 0/1 mask: ``(n, labels, stats)`` like cv2.connectedComponentsWithStats.
+def label_above(smooth, threshold):  # pragma: no cover - compiled
+    """8-connected components of ``smooth > threshold``: ``(n, labels, stats)`` like
+    cv2.connectedComponentsWithStats.
 
     Labels run 1..n-1 in the raster order of each component's first pixel (0 is the background);
-    ``stats[label]`` is ``[x, y, width, height, area]``."""
-    h, w = mask.shape
-    labels = np.zeros((h, w), dtype=np.int32)
-    parent = np.empty(h * w // 2 + 2, dtype=np.int32)
-    parent[0] = 0
-    nxt = 1
+    ``stats[label]`` is ``[x, y, width, height, area]``. Works on runs of pixels, not pixels: the
+    rows are scanned once, and runs touching (8-connected) a run of the row above are merged."""
+    h, w = smooth.shape
+    cap = h * ((w + 1) // 2) + 1
+    run_y = np.empty(cap, dtype=np.int64)
+    run_x0 = np.empty(cap, dtype=np.int64)
+    run_x1 = np.empty(cap, dtype=np.int64)
+    parent = np.empty(cap, dtype=np.int64)
+    n_runs = 0
+    prev_start, prev_end = 0, 0  # runs of the row above: [prev_start, prev_end)
     for y in range(h):
-        for x in range(w):
-            if mask[y, x] == 0:
+        row = smooth[y]
+        row_start = n_runs
+        k = prev_start
+        x = 0
+        while x < w:
+            if not row[x] > threshold:
+                x += 1
                 continue
-            best = 0
-            # The already visited 8-neighbours: left, and the three above.
-            for dy, dx in ((0, -1), (-1, -1), (-1, 0), (-1, 1)):
-                yy, xx = y + dy, x + dx
-                if yy < 0 or xx < 0 or xx >= w:
-                    continue
-                lab = labels[yy, xx]
-                if lab == 0:
-                    continue
-                if best == 0:
-                    best = lab
-                else:
-                    ra, rb = _find(parent, best), _find(parent, lab)
-                    if ra != rb:
-                        if ra < rb:
-                            parent[rb] = ra
-                        else:
-                            parent[ra] = rb
-            if best == 0:
-                if nxt >= parent.size:
-                    grown = np.empty(parent.size * 2, dtype=np.int32)
-                    grown[:parent.size] = parent
-                    parent = grown
-                parent[nxt] = nxt
-                best = nxt
-                nxt += 1
-            labels[y, x] = best
-    # Final labels: roots numbered in order of their first pixel (the smallest provisional label of
-    # a set is its root, and provisional labels were handed out in raster order).
-    final = np.zeros(nxt, dtype=np.int32)
+            x0 = x
+            while x < w and row[x] > threshold:
+                x += 1
+            r = n_runs
+            run_y[r], run_x0[r], run_x1[r] = y, x0, x
+            parent[r] = r
+            n_runs += 1
+            # Runs above that touch [x0 - 1, x] (8-connectivity); they are sorted by x.
+            while k < prev_end and run_x1[k] < x0:
+                k += 1
+            j = k
+            while j < prev_end and run_x0[j] <= x:
+                ra, rb = _find(parent, j), _find(parent, r)
+                if ra != rb:
+                    if ra < rb:
+                        parent[rb] = ra
+                    else:
+                        parent[ra] = rb
+                j += 1
+            if j > k:
+                k = j - 1  # the last touching run may touch the next run of this row too
+        prev_start, prev_end = row_start, n_runs
+    # Final labels: roots (the first run of each set, in raster order) numbered in order.
+    final = np.zeros(n_runs, dtype=np.int64)
     n = 1
-    for i in range(1, nxt):
-        r = _find(parent, i)
-        if r == i:
-            final[i] = n
+    for r in range(n_runs):
+        root = _find(parent, r)
+        if root == r:
+            final[r] = n
             n += 1
         else:
-            final[i] = final[r]
+            final[r] = final[root]
+    labels = np.zeros((h, w), dtype=np.int32)
     stats = np.zeros((n, 5), dtype=np.int64)
     for i in range(1, n):
-        stats[i, 0] = w
-        stats[i, 1] = h
-        stats[i, 2] = -1
-        stats[i, 3] = -1
-    for y in range(h):
-        for x in range(w):
-            lab = labels[y, x]
-            if lab == 0:
-                continue
-            lab = final[lab]
-            labels[y, x] = lab
-            st = stats[lab]
-            st[0] = min(st[0], x)
-            st[1] = min(st[1], y)
-            st[2] = max(st[2], x)
-            st[3] = max(st[3], y)
-            st[4] += 1
+        stats[i, 0], stats[i, 1], stats[i, 2], stats[i, 3] = w, h, -1, -1
+    for r in range(n_runs):
+        lab = final[r]
+        y, x0, x1 = run_y[r], run_x0[r], run_x1[r]
+        labels[y, x0:x1] = lab
+        st = stats[lab]
+        st[0] = min(st[0], x0)
+        st[1] = min(st[1], y)
+        st[2] = max(st[2], x1 - 1)
+        st[3] = max(st[3], y)
+        st[4] += x1 - x0
     for i in range(1, n):
         stats[i, 2] = stats[i, 2] - stats[i, 0] + 1
         stats[i, 3] = stats[i, 3] - stats[i, 1] + 1
@@ -254,17 +334,12 @@ def candidates(a, g, detect_sigma, smooth_gain, floor):  # pragma: no cover - co
 
     Returns ``(sigma, smooth, labels, stats, order)``: ``order`` lists the labels by decreasing area
     (ties in label order)."""
-    sigma = noise_sigma_of(a)
+    sigma = noise_sigma_f32(a)
     if not (sigma > 0.0) or not math.isfinite(sigma):
         sigma = 1e-3
     smooth = gaussian5(a, g)
     threshold = np.float32(max(detect_sigma * sigma * smooth_gain, floor))
-    h, w = a.shape
-    detected = np.empty((h, w), dtype=np.uint8)
-    for y in range(h):
-        for x in range(w):
-            detected[y, x] = 1 if smooth[y, x] > threshold else 0
-    n, labels, stats = label_components(detected)
+    _, labels, stats = label_above(smooth, threshold)
     order = np.argsort(-stats[1:, 4], kind="mergesort") + 1
     return sigma, smooth, labels, stats, order
 
@@ -352,83 +427,49 @@ def moments(weights):  # pragma: no cover - compiled
 
 # ------------------------------------------------------------------------------------ one candidate
 @kernel
-def _flood(allowed, seeds, out):  # pragma: no cover - compiled
-    """Marks in ``out`` the 8-connected parts of ``allowed`` that contain a pixel of ``seeds``."""
-    h, w = allowed.shape
-    stack = np.empty(h * w, dtype=np.int64)
-    top = 0
-    for y in range(h):
-        for x in range(w):
-            if seeds[y, x] != 0 and allowed[y, x] != 0 and out[y, x] == 0:
-                out[y, x] = 1
-                stack[top] = y * w + x
-                top += 1
-    while top > 0:
-        top -= 1
-        p = stack[top]
-        y, x = p // w, p % w
-        for dy in range(-1, 2):
-            yy = y + dy
-            if yy < 0 or yy >= h:
-                continue
-            for dx in range(-1, 2):
-                xx = x + dx
-                if xx < 0 or xx >= w or out[yy, xx] != 0 or allowed[yy, xx] == 0:
-                    continue
-                out[yy, xx] = 1
-                stack[top] = yy * w + xx
-                top += 1
+def _end_stops(smooth, wy0, wx0, ys, xs, n, s_of, s_lo, s_hi, tolerance, fade_step):  # pragma: no cover
+    """How far (px along the axis) the body may extend beyond each end of its core: ``(beyond s_hi,
+    beyond s_lo)``, infinite where nothing lies beyond.
 
-
-@kernel
-def _end_keep(smooth, mask, s, s_lo, s_hi, tolerance, fade_step):  # pragma: no cover - compiled
-    """The ``stop`` distance beyond each end of the core (see segmentation._end_limits): ``(stop_hi, stop_lo)``."""
-    h, w = mask.shape
-    # The body's width per 1-px slice along its core.
+    Beyond each end of the core the body can only fade: a cone's attenuation falls steadily to its
+    apex, a flat end's within the blur. Walking outward in 1-px slices, the body ends where the
+    slice's strongest pixel stops falling (over ``fade_step`` slices, by more than ``tolerance``),
+    or where the slice is wider than the body along its core (1.2 x the median slice width + 2):
+    what continues at a steady level or widens is something else, such as a vessel the robot touches.
+    ``ys, xs`` (window px) and ``s_of`` (their axial coordinates) list the body's ``n`` pixels."""
     nbins_core = int(math.floor(s_hi - s_lo)) + 1
     core_width = np.zeros(max(nbins_core, 1) + 1, dtype=np.int64)
-    n_inside = 0
     top_bin = -1
     far_hi, far_lo = 0.0, 0.0
-    for y in range(h):
-        for x in range(w):
-            if mask[y, x] == 0:
-                continue
-            p = s[y, x]
-            if p >= s_lo and p <= s_hi:
-                b = int(math.floor(p - s_lo))
-                core_width[b] += 1
-                n_inside += 1
-                top_bin = max(top_bin, b)
-            far_hi = max(far_hi, p - s_hi)
-            far_lo = max(far_lo, s_lo - p)
-    if n_inside == 0:
-        max_width = 1.2 * 0.0 + 2.0
+    for i in range(n):
+        p = s_of[i]
+        if p >= s_lo and p <= s_hi:
+            b = int(math.floor(p - s_lo))
+            core_width[b] += 1
+            top_bin = max(top_bin, b)
+        far_hi = max(far_hi, p - s_hi)
+        far_lo = max(far_lo, s_lo - p)
+    if top_bin < 0:
+        max_width = 2.0
     else:
         counts = core_width[:top_bin + 1].astype(np.float64)
         max_width = 1.2 * float(median_inplace(counts, top_bin + 1)) + 2.0
-    stops = np.zeros(2, dtype=np.float64)
+    stops = np.full(2, np.inf)
     for side in range(2):
         sign = 1.0 if side == 0 else -1.0
         start = s_hi if side == 0 else s_lo
         far = far_hi if side == 0 else far_lo
         if not far > 0.0:
-            stops[side] = np.inf  # nothing beyond this end: no limit
             continue
         nb = int(math.floor(far)) + 1
         peak = np.full(nb, -np.inf)
         width = np.zeros(nb, dtype=np.int64)
-        for y in range(h):
-            for x in range(w):
-                if mask[y, x] == 0:
-                    continue
-                beyond = sign * (s[y, x] - start)
-                if beyond > 0.0:
-                    b = int(math.floor(beyond))
-                    v = float(smooth[y, x])
-                    if v > peak[b]:
-                        peak[b] = v
-                    width[b] += 1
+        for i in range(n):
+            beyond = sign * (s_of[i] - start)
+            if beyond > 0.0:
+                b = int(math.floor(beyond))
+                peak[b] = max(peak[b], float(smooth[wy0 + ys[i], wx0 + xs[i]]))
+                width[b] += 1
         stop = nb
         for b in range(nb):
             if (not math.isfinite(peak[b]) or width[b] > max_width
@@ -440,52 +481,66 @@ def _end_keep(smooth, mask, s, s_lo, s_hi, tolerance, fade_step):  # pragma: no 
 
 
 @kernel
-def _fill_columns(values, support, fill_rows, fill_cols, transpose):  # pragma: no cover - compiled
-    """The background under the body (see segmentation._fill_across), along columns or, transposed, rows.
+def _fill_values(smooth, wy0, wx0, hh, ww, support, sy0, sy1, sx0, sx1, fill_rows, fill_cols,
+                 transpose, out):  # pragma: no cover - compiled
+    """The background under the body, written into ``out`` on the support (window px).
 
-    Each column (row) crossing ``support`` has its supported run replaced by the straight line between
-    the means of ``fill_rows`` pixels beyond either end, smoothed over ``fill_cols`` neighbouring lines."""
+    Each column (a row if ``transpose``) crossing the support has its supported run replaced by the
+    straight line between the means of ``fill_rows`` pixels beyond either end (clamped to the window),
+    those means smoothed over ``fill_cols`` neighbouring lines (edge-replicated). Exact for a vessel
+    crossing the robot, only slightly low for a vessel it lies in. ``support`` covers the box
+    ``[sy0, sy1) x [sx0, sx1)`` of the window; each line crosses it once (it is convex)."""
     if transpose:
-        v = values.T
-        m = support.T
+        n_lines, line_len, l0, l1 = hh, ww, sy0, sy1
     else:
-        v = values
-        m = support
-    h, w = v.shape
-    out = values.copy()
-    o = out.T if transpose else out
-    # The lines crossing the support are contiguous (it is convex).
+        n_lines, line_len, l0, l1 = ww, hh, sx0, sx1
     c0, c1 = -1, -1
-    for c in range(w):
-        for r in range(h):
-            if m[r, c] != 0:
-                if c0 < 0:
-                    c0 = c
-                c1 = c + 1
-                break
+    for c in range(l0, l1):
+        hit = False
+        if transpose:
+            for r in range(sx0, sx1):
+                if support[c - sy0, r - sx0]:
+                    hit = True
+                    break
+        else:
+            for r in range(sy0, sy1):
+                if support[r - sy0, c - sx0]:
+                    hit = True
+                    break
+        if hit:
+            if c0 < 0:
+                c0 = c
+            c1 = c + 1
     if c0 < 0:
-        return out
+        return
     nc = c1 - c0
     tops = np.empty(nc, dtype=np.int64)
     bottoms = np.empty(nc, dtype=np.int64)
     v_top = np.empty(nc, dtype=np.float32)
     v_bottom = np.empty(nc, dtype=np.float32)
     third = np.float32(fill_rows)
+    r_lo, r_hi = (sx0, sx1) if transpose else (sy0, sy1)
     for i in range(nc):
         c = c0 + i
-        first = 0
-        while m[first, c] == 0:
-            first += 1
-        last = h - 1
-        while m[last, c] == 0:
-            last -= 1
+        first, last = -1, -1
+        for r in range(r_lo, r_hi):
+            inside = support[c - sy0, r - sx0] if transpose else support[r - sy0, c - sx0]
+            if inside:
+                if first < 0:
+                    first = r
+                last = r
         top, bottom = first - 1, last + 1
         tops[i], bottoms[i] = top, bottom
         acc_t = np.float32(0.0)
         acc_b = np.float32(0.0)
         for k in range(fill_rows):
-            acc_t += v[max(top - k, 0), c]
-            acc_b += v[min(bottom + k, h - 1), c]
+            rt, rb = max(top - k, 0), min(bottom + k, line_len - 1)
+            if transpose:
+                acc_t += smooth[wy0 + c, wx0 + rt]
+                acc_b += smooth[wy0 + c, wx0 + rb]
+            else:
+                acc_t += smooth[wy0 + rt, wx0 + c]
+                acc_b += smooth[wy0 + rb, wx0 + c]
         v_top[i] = acc_t / third
         v_bottom[i] = acc_b / third
     if nc >= fill_cols:
@@ -510,9 +565,29 @@ def _fill_columns(values, support, fill_rows, fill_cols, transpose):  # pragma: 
         # float32 difference, float64 line: the arithmetic of the numpy code this replaced.
         vt, rise = float(v_top[i]), float(v_bottom[i] - v_top[i])
         for r in range(top + 1, bottom):
-            if m[r, c] != 0:
-                o[r, c] = np.float32(vt + rise * ((float(np.float32(r)) - top) / span))
-    return out
+            value = np.float32(vt + rise * ((float(np.float32(r)) - top) / span))
+            if transpose:
+                if support[c - sy0, r - sx0]:
+                    out[c, r] = value
+            elif support[r - sy0, c - sx0]:
+                out[r, c] = value
+
+
+@kernel
+def _dilated_box(ys, xs, n, half_widths, hh, ww):  # pragma: no cover - compiled
+    """The pixels ``(ys, xs)[:n]`` dilated by the row spans ``half_widths``, on their bounding box grown
+    by the element's radius and clipped to ``hh x ww``: ``(mask, y0, x0)``."""
+    r = (half_widths.size - 1) // 2
+    y0, y1, x0, x1 = hh, -1, ww, -1
+    for i in range(n):
+        y0, y1 = min(y0, ys[i]), max(y1, ys[i])
+        x0, x1 = min(x0, xs[i]), max(x1, xs[i])
+    y0, x0 = max(y0 - r, 0), max(x0 - r, 0)
+    y1, x1 = min(y1 + r + 1, hh), min(x1 + r + 1, ww)
+    src = np.zeros((y1 - y0, x1 - x0), dtype=np.uint8)
+    for i in range(n):
+        src[ys[i] - y0, xs[i] - x0] = 1
+    return dilate_runs(src, half_widths), y0, x0
 
 
 @kernel
@@ -525,8 +600,12 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
     dilations (ring and weighted support).
 
     Returns ``(status, window, weights, mask, scalars)``: status 0 if the component is not a plausible
-    robot; ``window`` ``[y0, y1, x0, x1]`` in ``a``'s pixels; ``scalars`` ``[peak above baseline,
-    baseline, strength, centroid x, centroid y (window px), edge, minor moment, clutter, pixel count]``."""
+    robot; ``window`` ``[y0, y1, x0, x1]`` (``a``'s pixels) is where ``weights`` and ``mask`` sit, the
+    bounding box of the weighted pixels; ``scalars`` ``[peak above baseline, baseline, strength,
+    centroid x, centroid y (window px), edge, minor moment, clutter, pixel count]``.
+
+    Pixels are visited as lists (flood fills from the core), so the cost follows the body, not the
+    window around it."""
     min_peak, core_fraction = p[0], p[1]
     min_pixels, max_extent = int(p[2]), p[3]
     max_elongation, cone_reach = p[4], p[5]
@@ -537,49 +616,51 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
     empty_m = np.zeros((0, 0), dtype=np.uint8)
     nothing = np.zeros(4, dtype=np.int64)
     no_scalars = np.zeros(9)
-    # The component's peak, and its core: the part above core_fraction of it connected to the peak.
-    peak32 = np.float32(-np.inf)
+    # The component's peak (its first maximum in raster order) and its core: the part above
+    # core_fraction of the peak, 8-connected to it.
+    peak32, py, px = np.float32(-np.inf), -1, -1
     for y in range(by, by + bh):
         for x in range(bx, bx + bw):
             if labels[y, x] == label and smooth[y, x] > peak32:
-                peak32 = smooth[y, x]
+                peak32, py, px = smooth[y, x], y, x
     peak = float(peak32)
     if peak < min_peak:
         return 0, nothing, empty_w, empty_m, no_scalars
     level32 = np.float32(core_fraction * peak)
-    strong = np.zeros((bh, bw), dtype=np.uint8)
-    best, by_, bx_ = np.float32(-np.inf), -1, -1
-    for y in range(bh):
-        for x in range(bw):
-            v = smooth[by + y, bx + x]
-            if labels[by + y, bx + x] == label and v >= level32:
-                strong[y, x] = 1
-                if v > best:
-                    best, by_, bx_ = v, y, x
-    seed = np.zeros((bh, bw), dtype=np.uint8)
-    seed[by_, bx_] = 1
-    core = np.zeros((bh, bw), dtype=np.uint8)
-    _flood(strong, seed, core)
-    n = 0
-    sx = sy = 0.0
-    xmin, xmax, ymin, ymax = bw, -1, bh, -1
-    for y in range(bh):
-        for x in range(bw):
-            if core[y, x]:
-                n += 1
-                sx += x
-                sy += y
-                xmin, xmax = min(xmin, x), max(xmax, x)
-                ymin, ymax = min(ymin, y), max(ymax, y)
+    seen = np.zeros((bh, bw), dtype=np.uint8)
+    cys = np.empty(bh * bw, dtype=np.int64)
+    cxs = np.empty(bh * bw, dtype=np.int64)
+    cys[0], cxs[0] = py - by, px - bx
+    seen[py - by, px - bx] = 1
+    n, head = 1, 0
+    while head < n:
+        y, x = cys[head], cxs[head]
+        head += 1
+        for yy in range(max(y - 1, 0), min(y + 2, bh)):
+            for xx in range(max(x - 1, 0), min(x + 2, bw)):
+                if (not seen[yy, xx] and labels[by + yy, bx + xx] == label
+                        and smooth[by + yy, bx + xx] >= level32):
+                    seen[yy, xx] = 1
+                    cys[n], cxs[n] = yy, xx
+                    n += 1
     if n < min_pixels:
         return 0, nothing, empty_w, empty_m, no_scalars
+    sx = sy = 0
+    xmin, xmax, ymin, ymax = bw, -1, bh, -1
+    for i in range(n):
+        sx += cxs[i]
+        sy += cys[i]
+        xmin, xmax = min(xmin, cxs[i]), max(xmax, cxs[i])
+        ymin, ymax = min(ymin, cys[i]), max(ymax, cys[i])
     if max(xmax - xmin, ymax - ymin) + 1 > max_extent:
         return 0, nothing, empty_w, empty_m, no_scalars
     cx, cy = sx / n, sy / n
+    # The scatter summed in raster order, as the numpy code did: a body at 45 degrees has equal
+    # diagonal terms, and the rounding then picks the background fill's direction.
     sxx = syy = sxy = 0.0
-    for y in range(bh):
-        for x in range(bw):
-            if core[y, x]:
+    for y in range(ymin, ymax + 1):
+        for x in range(xmin, xmax + 1):
+            if seen[y, x]:
                 dx, dy = x - cx, y - cy
                 sxx += dx * dx
                 syy += dy * dy
@@ -588,15 +669,13 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
     if math.sqrt(l1 / max(l2, 1e-3)) > max_elongation:
         return 0, nothing, empty_w, empty_m, no_scalars
     s_min, s_max, t_max = np.inf, -np.inf, 0.0
-    for y in range(bh):
-        for x in range(bw):
-            if core[y, x]:
-                dx, dy = x - cx, y - cy
-                s_ = dx * ax + dy * ay
-                t_ = abs(-dx * ay + dy * ax)
-                s_min, s_max, t_max = min(s_min, s_), max(s_max, s_), max(t_max, t_)
+    for i in range(n):
+        dx, dy = cxs[i] - cx, cys[i] - cy
+        s_ = dx * ax + dy * ay
+        t_ = abs(-dx * ay + dy * ax)
+        s_min, s_max, t_max = min(s_min, s_), max(s_max, s_), max(t_max, t_)
     core_len = s_max - s_min
-    reach = cone_reach * core_len + 3.0
+    reach = cone_reach * core_len + 3.0  # how far beyond the core a faint cone tip may go
     pad = dilate_px + 1.0
     half_width = t_max + pad + 2.0
     grow = int(math.ceil(reach + half_width + pad + fill_rows + 2))
@@ -605,98 +684,152 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
     wx1, wy1 = min(W, bx + xmax + grow + 1), min(H, by + ymax + grow + 1)
     hh, ww = wy1 - wy0, wx1 - wx0
     ox, oy = bx + cx, by + cy  # the core's centroid in a's pixels
-    s_w = np.empty((hh, ww))
-    t_w = np.empty((hh, ww))
-    for y in range(hh):
-        gy = (wy0 + y) - oy
-        for x in range(ww):
-            gx = (wx0 + x) - ox
-            s_w[y, x] = gx * ax + gy * ay
-            t_w[y, x] = -gx * ay + gy * ax
-    core_w = np.zeros((hh, ww), dtype=np.uint8)
-    dyc, dxc = by - wy0, bx - wx0
-    for y in range(bh):
-        for x in range(bw):
-            if core[y, x]:
-                core_w[y + dyc, x + dxc] = 1
+    # Core pixels in window coordinates.
+    for i in range(n):
+        cys[i] += by - wy0
+        cxs[i] += bx - wx0
     # The local baseline: the median of a ring around the core.
-    outer = dilate_runs(core_w, ring_outer)
-    inner = dilate_runs(core_w, ring_inner)
-    ring_vals = np.empty(hh * ww, dtype=np.float32)
+    gap_r = (ring_inner.size - 1) // 2
+    outer, oy0, ox0 = _dilated_box(cys, cxs, n, ring_outer, hh, ww)
+    oh, ow = outer.shape
+    inner_src = np.zeros((oh, ow), dtype=np.uint8)
+    for i in range(n):
+        inner_src[cys[i] - oy0, cxs[i] - ox0] = 1
+    inner = dilate_runs(inner_src, ring_inner) if gap_r > 0 else inner_src
+    ring_vals = np.empty(oh * ow, dtype=np.float32)
     nr = 0
-    for y in range(hh):
-        for x in range(ww):
+    for y in range(oh):
+        for x in range(ow):
             if outer[y, x] and not inner[y, x]:
-                ring_vals[nr] = smooth[wy0 + y, wx0 + x]
+                ring_vals[nr] = smooth[wy0 + oy0 + y, wx0 + ox0 + x]
                 nr += 1
     baseline = float(median_inplace(ring_vals, nr)) if nr > 0 else 0.0
     height = peak - baseline
     if height < min_peak:
         return 0, nothing, empty_w, empty_m, no_scalars
+    # The body: above the baseline by ``level``, inside the capsule, 8-connected to the core.
     level = max(support_sigma * sigma_s, support_fraction * height)
-    base32, level32 = np.float32(baseline), np.float32(level)
+    base32, lvl32 = np.float32(baseline), np.float32(level)
     lo_s, hi_s = s_min - reach, s_max + reach
-    above = np.zeros((hh, ww), dtype=np.uint8)
-    for y in range(hh):
-        for x in range(ww):
-            if ((smooth[wy0 + y, wx0 + x] - base32) > level32 and abs(t_w[y, x]) <= half_width
-                    and s_w[y, x] >= lo_s and s_w[y, x] <= hi_s):
-                above[y, x] = 1
     mask = np.zeros((hh, ww), dtype=np.uint8)
-    _flood(above, core_w, mask)
-    for y in range(hh):
-        for x in range(ww):
-            if core_w[y, x]:
-                mask[y, x] = 1
-    s_win = smooth[wy0:wy1, wx0:wx1]
+    mys = np.empty(hh * ww, dtype=np.int64)
+    mxs = np.empty(hh * ww, dtype=np.int64)
+    m = 0
+    for i in range(n):
+        y, x = cys[i], cxs[i]
+        gx, gy = (wx0 + x) - ox, (wy0 + y) - oy
+        s_, t_ = gx * ax + gy * ay, -gx * ay + gy * ax
+        if (smooth[wy0 + y, wx0 + x] - base32) > lvl32 and abs(t_) <= half_width and s_ >= lo_s and s_ <= hi_s:
+            mask[y, x] = 1
+            mys[m], mxs[m] = y, x
+            m += 1
+    head = 0
+    while head < m:
+        y, x = mys[head], mxs[head]
+        head += 1
+        for yy in range(max(y - 1, 0), min(y + 2, hh)):
+            gy = (wy0 + yy) - oy
+            for xx in range(max(x - 1, 0), min(x + 2, ww)):
+                if mask[yy, xx]:
+                    continue
+                gx = (wx0 + xx) - ox
+                s_, t_ = gx * ax + gy * ay, -gx * ay + gy * ax
+                if ((smooth[wy0 + yy, wx0 + xx] - base32) > lvl32 and abs(t_) <= half_width
+                        and s_ >= lo_s and s_ <= hi_s):
+                    mask[yy, xx] = 1
+                    mys[m], mxs[m] = yy, xx
+                    m += 1
+    for i in range(n):  # the core belongs to the body even where it is below the level
+        y, x = cys[i], cxs[i]
+        if not mask[y, x]:
+            mask[y, x] = 1
+            mys[m], mxs[m] = y, x
+            m += 1
+    s_of = np.empty(m)
+    t_of = np.empty(m)
+    for i in range(m):
+        gx, gy = (wx0 + mxs[i]) - ox, (wy0 + mys[i]) - oy
+        s_of[i] = gx * ax + gy * ay
+        t_of[i] = -gx * ay + gy * ax
     tolerance = 3.0 * sigma_s * math.sqrt(2.0)
-    stops = _end_keep(s_win, mask, s_w, s_min, s_max, tolerance, fade_step)
+    stops = _end_stops(smooth, wy0, wx0, mys, mxs, m, s_of, s_min, s_max, tolerance, fade_step)
     count = 0
     in_lo, in_hi, in_t = np.inf, -np.inf, -np.inf
-    for y in range(hh):
-        for x in range(ww):
-            if mask[y, x]:
-                s_ = s_w[y, x]
-                if not ((s_ - s_max) < stops[0] and -(s_ - s_min) < stops[1]):
-                    mask[y, x] = 0
-                    continue
-                count += 1
-                in_lo, in_hi, in_t = min(in_lo, s_), max(in_hi, s_), max(in_t, abs(t_w[y, x]))
+    for i in range(m):
+        s_ = s_of[i]
+        if (s_ - s_max) < stops[0] and -(s_ - s_min) < stops[1]:
+            mys[count], mxs[count] = mys[i], mxs[i]
+            count += 1
+            in_lo, in_hi, in_t = min(in_lo, s_), max(in_hi, s_), max(in_t, abs(t_of[i]))
+        else:
+            mask[mys[i], mxs[i]] = 0
     if count == 0:
         return 0, nothing, empty_w, empty_m, no_scalars
-    # The support: a rectangle around the body.
-    support = np.zeros((hh, ww), dtype=np.uint8)
+    # The support: a rectangle around the body (along its axis), on its bounding box in the window.
+    lo_t, hi_s_, lo_s_, hi_t = in_t + pad, in_hi + pad, in_lo - pad, in_t + pad
+    gxs = np.empty(4)
+    gys = np.empty(4)
+    for k in range(4):
+        s_ = lo_s_ if k < 2 else hi_s_
+        t_ = -lo_t if k % 2 == 0 else hi_t
+        gxs[k] = s_ * ax - t_ * ay + ox - wx0
+        gys[k] = s_ * ay + t_ * ax + oy - wy0
+    sy0, sy1 = max(int(math.floor(gys.min())) - 1, 0), min(int(math.ceil(gys.max())) + 2, hh)
+    sx0, sx1 = max(int(math.floor(gxs.min())) - 1, 0), min(int(math.ceil(gxs.max())) + 2, ww)
+    support = np.zeros((max(sy1 - sy0, 0), max(sx1 - sx0, 0)), dtype=np.uint8)
     edge = False
-    for y in range(hh):
-        for x in range(ww):
-            s_ = s_w[y, x]
-            if s_ >= in_lo - pad and s_ <= in_hi + pad and abs(t_w[y, x]) <= in_t + pad:
-                support[y, x] = 1
-                if y < fill_rows or y >= hh - fill_rows or x < fill_rows or x >= ww - fill_rows:
+    for y in range(sy0, sy1):
+        gy = (wy0 + y) - oy
+        border_row = y < fill_rows or y >= hh - fill_rows
+        for x in range(sx0, sx1):
+            gx = (wx0 + x) - ox
+            s_, t_ = gx * ax + gy * ay, -gx * ay + gy * ax
+            if s_ >= lo_s_ and s_ <= hi_s_ and abs(t_) <= hi_t:
+                if border_row or x < fill_rows or x >= ww - fill_rows:
+                    # The rectangle reaches the window's edge: only possible where the window was
+                    # clipped by the searched region, i.e. the robot may be cut; keep the
+                    # interpolation inside.
                     edge = True
-    if edge:
-        for y in range(hh):
-            for x in range(ww):
-                if y < fill_rows or y >= hh - fill_rows or x < fill_rows or x >= ww - fill_rows:
-                    support[y, x] = 0
-    background = _fill_columns(s_win, support, fill_rows, fill_cols, abs(ax) < abs(ay))
-    near = dilate_runs(mask, near_hw)
-    weights = np.zeros((hh, ww), dtype=np.float32)
-    bmin, bmax, any_near = np.inf, -np.inf, False
-    for y in range(hh):
-        for x in range(ww):
-            if near[y, x] and support[y, x]:
-                weights[y, x] = a[wy0 + y, wx0 + x] - background[y, x]
-                b = float(background[y, x])
-                bmin, bmax, any_near = min(bmin, b), max(bmax, b), True
+                else:
+                    support[y - sy0, x - sx0] = 1
+    background = np.zeros((hh, ww), dtype=np.float32)
+    _fill_values(smooth, wy0, wx0, hh, ww, support, sy0, sy1, sx0, sx1, fill_rows, fill_cols,
+                 abs(ax) < abs(ay), background)
+    # Weigh only near the body: every background pixel adds noise to the moments, more so far out.
+    near, ny0, nx0 = _dilated_box(mys, mxs, count, near_hw, hh, ww)
+    nh, nw = near.shape
+    ky0, ky1, kx0, kx1 = hh, -1, ww, -1
+    bmin, bmax = np.inf, -np.inf
+    for y in range(nh):
+        for x in range(nw):
+            yy, xx = ny0 + y, nx0 + x
+            inside = (near[y, x] and yy >= sy0 and yy < sy1 and xx >= sx0 and xx < sx1
+                      and support[yy - sy0, xx - sx0])
+            near[y, x] = 1 if inside else 0
+            if inside:
+                ky0, ky1, kx0, kx1 = min(ky0, yy), max(ky1, yy), min(kx0, xx), max(kx1, xx)
+                b = float(background[yy, xx])
+                bmin, bmax = min(bmin, b), max(bmax, b)
+    any_near = ky1 >= 0
+    for i in range(count):  # the weights' window holds the mask too
+        ky0, ky1, kx0, kx1 = min(ky0, mys[i]), max(ky1, mys[i]), min(kx0, mxs[i]), max(kx1, mxs[i])
+    ky1 += 1
+    kx1 += 1
+    weights = np.zeros((ky1 - ky0, kx1 - kx0), dtype=np.float32)
+    for y in range(nh):
+        for x in range(nw):
+            if near[y, x]:
+                yy, xx = ny0 + y, nx0 + x
+                weights[yy - ky0, xx - kx0] = a[wy0 + yy, wx0 + xx] - background[yy, xx]
+    body = mask[ky0:ky1, kx0:kx1].copy()
     m00, m10, m01, mu20, mu02, mu11 = moments(weights)
     if not m00 > 0.0:
         return 0, nothing, empty_w, empty_m, no_scalars
     _, minor, _, _ = _principal(mu20, mu02, mu11, 1)
-    window = np.array([wy0, wy1, wx0, wx1], dtype=np.int64)
+    window = np.array([wy0 + ky0, wy0 + ky1, wx0 + kx0, wx0 + kx1], dtype=np.int64)
     scalars = np.array([height, baseline, m00, m10 / m00, m01 / m00, 1.0 if edge else 0.0, minor,
                         (bmax - bmin) / height if any_near else 0.0, float(count)])
-    return 1, window, weights, mask, scalars
+    return 1, window, weights, body, scalars
 
 
 # ------------------------------------------------------------------------------------------- features
