@@ -49,8 +49,8 @@ log = logging.getLogger(__name__)
 
 #: Stages of the recognition, as :attr:`Posture.timings_us` names them, then the stages after it.
 RECOGNITION_STAGES = ("segmentation", "features", "correspondence", "triangulation")
-STAGES = (*RECOGNITION_STAGES, "recognition", "recognition_cpu", "control_allocation", "amplifier_write",
-          "amplifier_ack")
+STAGES = (*RECOGNITION_STAGES, "recognition", "recognition_cpu", "control_allocation", "control_allocation_cpu",
+          "amplifier_write", "amplifier_write_cpu", "amplifier_ack")
 MODES = ("roi", "full")
 
 #: Targets of issue 8 (microseconds, ratios).
@@ -101,11 +101,13 @@ class _TimedPort:
         object.__setattr__(self, "_port", port)
         object.__setattr__(self, "_owner", threading.get_ident())
         object.__setattr__(self, "written_at", 0.0)
+        object.__setattr__(self, "written_cpu_ns", 0)
 
     def write(self, data: bytes) -> int | None:
         n = self._port.write(data)
         if threading.get_ident() == self._owner:
             object.__setattr__(self, "written_at", time.perf_counter())
+            object.__setattr__(self, "written_cpu_ns", time.thread_time_ns())
         return n
 
     def __getattr__(self, name: str) -> Any:
@@ -159,6 +161,7 @@ class BenchResult:
     simulation: dict[str, Any] | None = None
     notes: list[str] = field(default_factory=list)
     profile: list[dict[str, Any]] = field(default_factory=list)   # --profile: top functions of the steady step
+    loop_cpu_us: dict[str, float | None] = field(default_factory=dict)   # the loop's own thread CPU time
 
     def ratio(self, numerator: float | None, denominator: float | None) -> float | None:
         if numerator is None or denominator is None or denominator <= 0:
@@ -200,7 +203,8 @@ class BenchResult:
     def to_json(self) -> dict[str, Any]:
         return {"config": self.config, "stages_us": self.stages, "baseline_us": self.baseline_us,
                 "memory_floor_us": self.memory_floor_us, "baseline_ratio": self.baseline_ratio,
-                "cold_floor_ratio": self.cold_floor_ratio, "loop_us": self.loop_us, "fps": self.fps(),
+                "cold_floor_ratio": self.cold_floor_ratio, "loop_us": self.loop_us,
+                "loop_cpu_us": self.loop_cpu_us, "fps": self.fps(),
                 "tracking": self.tracking, "simulation": self.simulation, "targets": self.targets(),
                 "profile": self.profile, "notes": self.notes}
 
@@ -272,6 +276,7 @@ def run_bench(source: FrameSource, frames: int, amplifier_factory: Callable[[Any
     baseline_us: list[float] = []
     floor_us: list[float] = []
     loop_us: list[float] = []
+    loop_cpu_us: list[float] = []
     tracking = {"frames": 0, "roi": 0, "fallback_full": 0, "lost_roi": 0, "lost_full": 0}
     baseline: OpenCvBaseline | None = None
     buffers: tuple[np.ndarray, np.ndarray] | None = None
@@ -309,22 +314,28 @@ def run_bench(source: FrameSource, frames: int, amplifier_factory: Callable[[Any
                 else:
                     tracking["fallback_full"] += 1
                 tracking["lost_roi"] += not posture.ok
-            mark = perf()
+            mark, cpu_mark = perf(), cpu_time()
             allocation = _control_step(chain, posture, t, commanded, dt, moment_am2)
-            allocated = perf()
+            allocated, cpu_allocated = perf(), cpu_time()
             samples["roi"].add("control_allocation", (allocated - mark) * 1e6)
+            samples["roi"].add("control_allocation_cpu", (cpu_allocated - cpu_mark) / 1e3)
+            loop_cpu = cpu + (cpu_allocated - cpu_mark) / 1e3
             if amplifier is not None and port is not None:
                 result = amplifier.set_currents(allocation.currents_a)
                 acked = perf()
                 commanded = result.commanded_a
                 samples["roi"].add("amplifier_write", (port.written_at - allocated) * 1e6)
+                samples["roi"].add("amplifier_write_cpu", (port.written_cpu_ns - cpu_allocated) / 1e3)
                 samples["roi"].add("amplifier_ack", (acked - allocated) * 1e6)
+                loop_cpu += (port.written_cpu_ns - cpu_allocated) / 1e3
                 if n > 0 and mode == "roi":
                     loop_us.append((port.written_at - began) * 1e6)
+                    loop_cpu_us.append(loop_cpu)
             else:
                 commanded = allocation.currents_a
                 if n > 0 and mode == "roi":
                     loop_us.append((allocated - began) * 1e6)
+                    loop_cpu_us.append(loop_cpu)
             # -- cold: full-frame detection from scratch
             cold.reset()
             began, cpu = perf(), cpu_time()
@@ -366,14 +377,15 @@ def run_bench(source: FrameSource, frames: int, amplifier_factory: Callable[[Any
     stages = {mode: {stage: percentiles(samples[mode].values.get(stage, [])) for stage in STAGES}
               for mode in MODES}
     # Control, allocation and the amplifier command do not depend on how the frame was searched.
-    for stage in ("control_allocation", "amplifier_write", "amplifier_ack"):
+    for stage in ("control_allocation", "control_allocation_cpu", "amplifier_write", "amplifier_write_cpu",
+                  "amplifier_ack"):
         stages["full"][stage] = stages["roi"][stage]
     config = {"frames": tracking["frames"], "image_size": list(image_p.shape[::-1]) if tracking["frames"] else None,
               "fps": source.fps, "amplifier": amplifier_url is not None, "estimator": settings.estimator,
               "machine": machine(), "warm_up_s": round(warm_up_s, 3), "profile_pairs": profile_pairs}
     return BenchResult(config=config, stages=stages, baseline_us=percentiles(baseline_us),
                        memory_floor_us=percentiles(floor_us), loop_us=percentiles(loop_us), tracking=tracking,
-                       profile=profile)
+                       profile=profile, loop_cpu_us=percentiles(loop_cpu_us))
 
 
 def run_simulation(seconds: float, image_size: tuple[int, int] | None = None,
@@ -439,8 +451,9 @@ def format_table(result: BenchResult) -> str:
     for stage in STAGES:
         roi, full = result.stages["roi"][stage], result.stages["full"][stage]
         label = {"recognition": "= recognition (pair)", "recognition_cpu": "  its thread CPU time",
-                 "control_allocation": "control + allocation",
-                 "amplifier_write": "amplifier: written", "amplifier_ack": "amplifier: acked"}.get(stage, stage)
+                 "control_allocation": "control + allocation", "control_allocation_cpu": "  its thread CPU time",
+                 "amplifier_write": "amplifier: written", "amplifier_write_cpu": "  its thread CPU time",
+                 "amplifier_ack": "amplifier: acked"}.get(stage, stage)
         if stage in ("control_allocation",):
             lines.append("")
         lines.append(f"{label:<22} {_f(roi['p50'])} {_f(roi['p99'])} {_f(full['p50'])} {_f(full['p99'])}")
@@ -452,6 +465,10 @@ def format_table(result: BenchResult) -> str:
                  f"{_f(result.cold_floor_ratio, '.2f')}x the floor (p50)")
     lines.append(f"{'loop: frame->written':<22} {_f(lp['p50'])} {_f(lp['p99'])}   (ROI recognition + control + "
                  f"allocation + amplifier write{'' if cfg['amplifier'] else '; no amplifier'})")
+    if result.loop_cpu_us:
+        lc = result.loop_cpu_us
+        lines.append(f"{'  its thread CPU time':<22} {_f(lc.get('p50'))} {_f(lc.get('p99'))}   (the work itself: the wall "
+                     f"time above also holds waiting for a core while other processes run)")
     fps = result.fps()
     lines.append("")
     lines.append(f"pairs/s: recognition ROI {_f(fps['recognition_roi'], '.0f')}, full {_f(fps['recognition_full'], '.0f')}; "

@@ -40,8 +40,10 @@ def test_json_has_every_figure(bench_json: dict[str, Any]) -> None:
         for stage in STAGES:
             figures = bench_json["stages_us"][mode][stage]
             assert figures["p50"] is not None and figures["p99"] >= figures["p50"] >= 0.0, (mode, stage)
-    for key in ("baseline_us", "memory_floor_us", "loop_us"):
+    for key in ("baseline_us", "memory_floor_us", "loop_us", "loop_cpu_us"):
         assert bench_json[key]["p99"] >= bench_json[key]["p50"] > 0.0
+    # One thread's CPU time never exceeds the wall time it spans.
+    assert bench_json["loop_cpu_us"]["p50"] <= bench_json["loop_us"]["p50"] * 1.01
     assert bench_json["baseline_ratio"] > 0 and bench_json["cold_floor_ratio"] > 0
     assert set(bench_json["fps"]) == {"recognition_roi", "recognition_full", "loop_in_process", "closed_loop_simulation"}
     assert all(v is not None and v > 0 for v in bench_json["fps"].values())
