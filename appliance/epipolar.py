@@ -6,9 +6,11 @@ Conventions: view ``p`` is the first image and ``q`` the second, ``x_q^T F x_p =
 threshold in the appliance is ever put on it.
 
 Triangulation undistorts first, optionally moves the pair onto the epipolar constraint with the
-optimal (Hartley-Sturm) correction of ``cv2.correctMatches`` - the smallest pixel move that makes the
-two rays intersect - and then solves the linear DLT in normalised camera coordinates, which is well
-conditioned whatever the focal length.
+optimal (Hartley-Sturm) correction - the smallest pixel move that makes the two rays intersect - and
+then solves the linear DLT in normalised camera coordinates, which is well conditioned whatever the
+focal length. It runs compiled (:mod:`appliance.geometry_kernels`; the correction is Lindstrom's
+iteration, which the tests check against ``cv2.correctMatches``): the tracker and the full-frame
+candidate checks call it every frame on a handful of points.
 """
 from __future__ import annotations
 
@@ -16,8 +18,9 @@ import functools
 import logging
 from typing import TYPE_CHECKING, Any
 
-import cv2
 import numpy as np
+
+from appliance import geometry_kernels
 
 if TYPE_CHECKING:
     from appliance.geometry import View
@@ -69,6 +72,19 @@ def _fundamental_cached(p: View, q: View) -> np.ndarray:
     return F
 
 
+def packed_views(p: View, q: View) -> np.ndarray:
+    """Both views, ``F`` and the DLT's world scale packed for the compiled kernels (cached per view pair)."""
+    return _packed_cached(p, q)
+
+
+@functools.lru_cache(maxsize=32)
+def _packed_cached(p: View, q: View) -> np.ndarray:
+    views = [geometry_kernels.pack_view(v.K, v.K_inv, v.R, v.t, v.dist) for v in (p, q)]
+    # The DLT scales the world by s so that the homogeneous column is as large as the rotation part.
+    scale = max(float(np.linalg.norm(p.t)), float(np.linalg.norm(q.t)), 1.0)
+    return geometry_kernels.pack_views(views[0], views[1], _fundamental_cached(p, q), scale)
+
+
 def epipolar_lines(F: np.ndarray, uv: Any, *, from_view: str = "p") -> np.ndarray:
     """Epipolar lines (N,3) ``(a, b, c)`` with ``a^2 + b^2 = 1`` in the *other* view for ideal pixels of ``from_view``.
 
@@ -96,48 +112,25 @@ def epipolar_distance_px(F: np.ndarray, uv_p: Any, uv_q: Any) -> np.ndarray:
     return np.sqrt((d_p * d_p + d_q * d_q) / 2.0)
 
 
-def _correct(F: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Hartley-Sturm optimal correction; pairs it cannot handle (NaN) keep their measured pixels."""
-    new_a, new_b = cv2.correctMatches(F, a.reshape(1, -1, 2), b.reshape(1, -1, 2))
-    new_a, new_b = new_a.reshape(-1, 2), new_b.reshape(-1, 2)
-    bad = ~(np.isfinite(new_a).all(axis=1) & np.isfinite(new_b).all(axis=1))
-    if bad.any():
-        log.debug("optimal correction failed for %d of %d pairs; using the measured pixels", bad.sum(), len(a))
-        new_a[bad], new_b[bad] = a[bad], b[bad]
-    return new_a, new_b
+def optimal_correction(p: View, q: View, ideal_p: Any, ideal_q: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Hartley-Sturm optimal correction of ideal pixel pairs (N,2), (N,2): the smallest squared pixel move
+    onto ``x_q^T F x_p = 0``. Pairs it cannot handle keep their pixels."""
+    a, b = _pair(ideal_p, ideal_q)
+    moved = geometry_kernels.correct_points(packed_views(p, q), a, b)
+    return moved[:, :2], moved[:, 2:]
 
 
 def triangulate(p: View, q: View, uv_p: Any, uv_q: Any, *, optimal: bool = True) -> np.ndarray:
     """World points (N,3) mm from observed (distorted) pixel pairs.
 
     ``optimal=True`` first corrects each pair onto the epipolar constraint (Hartley-Sturm, minimising
-    the squared pixel move), then solves the linear DLT. Rows whose solution lies at or behind either
-    source (no image could show it) or at infinity are NaN.
+    the squared pixel move), then solves the linear DLT (the smallest right singular vector of the four
+    row-normalised equations, in normalised camera coordinates with the world scaled by the larger
+    ``|t|``). Rows whose solution lies at or behind either source (no image could show it) or at
+    infinity are NaN.
     """
     a, b = _pair(uv_p, uv_q)
-    if len(a) == 0:
-        return np.zeros((0, 3))
-    a, b = p.undistort_points(a), q.undistort_points(b)
-    if optimal:
-        a, b = _correct(_fundamental_cached(p, q), a, b)
-    # DLT in normalised camera coordinates with the world scaled by s: P' = [R | t/s] keeps the
-    # homogeneous column the same size as the rotation part, so the SVD is well conditioned.
-    s = max(float(np.linalg.norm(p.t)), float(np.linalg.norm(q.t)), 1.0)
-    rows = []
-    for view, uv in ((p, a), (q, b)):
-        xn = _homogeneous(uv) @ view.K_inv.T
-        Pn = np.hstack([view.R, view.t[:, None] / s])
-        rows.append(xn[:, 0, None] * Pn[2] - Pn[0])
-        rows.append(xn[:, 1, None] * Pn[2] - Pn[1])
-    A = np.stack(rows, axis=1)  # (N, 4, 4)
-    A /= np.linalg.norm(A, axis=2, keepdims=True)
-    _, _, vt = np.linalg.svd(A)
-    Xh = vt[:, -1, :]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        X = Xh[:, :3] / Xh[:, 3:4] * s
-    behind = (p.to_camera(np.nan_to_num(X))[:, 2] <= 0) | (q.to_camera(np.nan_to_num(X))[:, 2] <= 0)
-    X[behind | ~np.isfinite(X).all(axis=1)] = np.nan
-    return X
+    return geometry_kernels.triangulate_points(packed_views(p, q), a, b, bool(optimal))
 
 
 def reprojection_error_px(p: View, q: View, X: Any, uv_p: Any, uv_q: Any) -> np.ndarray:

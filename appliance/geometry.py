@@ -328,6 +328,11 @@ class Calibration:
         """Fundamental matrix with ``x_q^T F x_p = 0`` on ideal pixels."""
         return fundamental_matrix(self.p, self.q)
 
+    @property
+    def packed(self) -> np.ndarray:
+        """Both views and ``F`` in the read-only layout of :mod:`appliance.geometry_kernels` (computed once)."""
+        return packed_views(self.views["p"], self.views["q"])
+
     @classmethod
     def from_views(cls, p: View, q: View, metadata: dict[str, Any] | None = None) -> Calibration:
         """Build from two views, running the same checks as a file load."""
@@ -380,13 +385,14 @@ from appliance.epipolar import (  # noqa: E402
     epipolar_lines,
     epipolar_plane_angle_deg,
     fundamental_matrix,
+    packed_views,
     reprojection_error_px,
     triangulate,
 )
 
 __all__ = [
     "Calibration", "CalibrationModel", "View", "ViewModel", "dark_level_of", "epipolar_distance_px", "epipolar_lines",
-    "epipolar_plane_angle_deg", "fundamental_matrix", "reprojection_error_px", "triangulate",
+    "epipolar_plane_angle_deg", "fundamental_matrix", "packed_views", "reprojection_error_px", "triangulate",
 ]
 
 

@@ -21,6 +21,7 @@ import numpy as np
 
 from appliance.errors import InputDataError
 from appliance.geometry import Calibration, epipolar_distance_px, fundamental_matrix, triangulate
+from appliance.geometry_kernels import project_segment
 from appliance.recognition.correspondence import pair_candidates, pairing_rms
 from appliance.recognition.features import Features2D, features
 from appliance.recognition.plausibility import cut_by_edge, declutter, not_robot_like
@@ -33,6 +34,11 @@ from appliance.recognition.settings import RecognitionSettings
 log = logging.getLogger(__name__)
 
 VIEWS = ("p", "q")
+
+
+def _image_length_px(feat: Features2D) -> float:
+    (u0, v0), (u1, v1) = feat.tips.tolist()
+    return math.hypot(u0 - u1, v0 - v1)
 
 
 @dataclass
@@ -97,14 +103,16 @@ class PostureTracker:
             posture.timings_us = timings
             return posture
         timings["triangulation"] = (time.perf_counter_ns() - start) / 1e3
-        mismatch = self._centroid_mismatch_px(feats)
+        mismatch = rec.centroid_epipolar_px
+        if mismatch is None:
+            mismatch = self._centroid_mismatch_px(feats)
         tips_rms = min(rec.pairing.rms_a_px, rec.pairing.rms_b_px)
         failure = None
         if mismatch > self.settings.epipolar_band_px:
             failure = (f"the robot images of the two views do not correspond (centroids {mismatch:.1f} px from "
                        f"each other's epipolar lines)")
         elif tips_rms > max(self.settings.tips_band_px, self.settings.tips_band_fraction * max(
-                float(np.linalg.norm(f.tips[0] - f.tips[1])) for f in feats.values())):
+                _image_length_px(f) for f in feats.values())):
             failure = (f"the robot images' ends do not correspond in either pairing (RMS epipolar distance "
                        f"{tips_rms:.1f} px); one view's blob is not (only) the robot")
         else:
@@ -142,23 +150,21 @@ class PostureTracker:
                      ) -> tuple[dict[str, Blob], dict[str, Features2D]] | None:
         track = self._track
         assert track is not None
-        centre = track.centroid + track.velocity * (t - track.t)
+        c0, c1, c2 = (track.centroid + track.velocity * (t - track.t)).tolist()
         half = 0.5 * (track.length_mm or 0.0) + 1.0
-        direction = track.direction if track.direction is not None else np.zeros(3)
-        points = np.array([centre, centre + half * direction, centre - half * direction])
+        d0, d1, d2 = track.direction.tolist() if track.direction is not None else (0.0, 0.0, 0.0)
+        # The robot's centre and ends, predicted, in both views (2, 3, 2): one compiled call.
+        projected = project_segment(self.calibration.packed, c0, c1, c2, d0, d1, d2, half)
         blobs: dict[str, Blob] = {}
         start = time.perf_counter_ns()
-        for name in VIEWS:
-            view = self.calibration.views[name]
-            projected = view.project(points)
-            roi = Roi.around(projected, self.settings.roi_margin_px, images[name].shape)
+        for index, name in enumerate(VIEWS):
+            roi = Roi.around(projected[index], self.settings.roi_margin_px, images[name].shape)
             if roi is None or name not in self._log_bg:
                 return None
             candidates = segment(images[name], self._log_bg[name], roi, self.settings)
-            predicted = projected[0]
+            u, v = projected[index, 0].tolist()
             near = [b for b in candidates if not b.touches_border
-                    and np.hypot(b.centroid_px[0] - predicted[0], b.centroid_px[1] - predicted[1])
-                    <= self.settings.gate_px]
+                    and math.hypot(b.centroid_px[0] - u, b.centroid_px[1] - v) <= self.settings.gate_px]
             if not near:
                 log.debug("view %s: robot not found in ROI %s; falling back to full frame", name, roi)
                 return None
@@ -268,9 +274,9 @@ class PostureTracker:
         for name in VIEWS:
             feat = rec.view_features[name]
             tips = rec.view_tips[name]
-            axis = tips[0] - tips[1]
-            norm = float(np.linalg.norm(axis))
-            axis = axis / norm if norm > 0 else feat.axis
+            (u0, v0), (u1, v1) = tips.tolist()
+            norm = math.hypot(u0 - u1, v0 - v1)
+            axis = np.array([(u0 - u1) / norm, (v0 - v1) / norm]) if norm > 0 else feat.axis
             observations[name] = ViewObservation(feat.centroid, tips, axis, blobs[name].pixel_count,
                                                  feat.eigenvalues, 0 if rec.head_identified else None)
         reasons = list(rec.reasons)

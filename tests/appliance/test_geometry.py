@@ -203,6 +203,59 @@ def test_optimal_correction_reduces_error_under_noise() -> None:
     assert reproj[True] == pytest.approx(0.5, rel=0.1)
 
 
+def _svd_dlt(cal: Calibration, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The linear DLT by numpy's SVD, as the compiled kernel defines it (normalised coordinates, world / s)."""
+    s = max(float(np.linalg.norm(cal.p.t)), float(np.linalg.norm(cal.q.t)), 1.0)
+    rows = []
+    for view, uv in ((cal.p, a), (cal.q, b)):
+        xn = np.column_stack([uv, np.ones(len(uv))]) @ view.K_inv.T
+        Pn = np.hstack([view.R, view.t[:, None] / s])
+        rows += [xn[:, 0, None] * Pn[2] - Pn[0], xn[:, 1, None] * Pn[2] - Pn[1]]
+    A = np.stack(rows, axis=1)
+    A /= np.linalg.norm(A, axis=2, keepdims=True)
+    Xh = np.linalg.svd(A)[2][:, -1, :]
+    return Xh[:, :3] / Xh[:, 3:4] * s
+
+
+def test_compiled_optimal_correction_matches_opencv_correct_matches(points: np.ndarray) -> None:
+    # Lindstrom's iteration must land where Hartley-Sturm's polynomial does (cv2.correctMatches), and
+    # the DLT of the moved pixels where numpy's SVD puts it. Noise of 2 px and unequal pixel scales.
+    from appliance.epipolar import optimal_correction
+
+    cal = biplane(DIST5, DIST8, focal_q=4000.0)
+    rng = np.random.default_rng(19)
+    up = cal.p.project(points) + rng.normal(0.0, 2.0, (len(points), 2))
+    uq = cal.q.project(points) + rng.normal(0.0, 2.0, (len(points), 2))
+    a, b = cal.p.undistort_points(up), cal.q.undistort_points(uq)
+    ref_a, ref_b = cv2.correctMatches(cal.F, a.reshape(1, -1, 2), b.reshape(1, -1, 2))
+    new_a, new_b = optimal_correction(cal.p, cal.q, a, b)
+    assert np.abs(new_a - ref_a.reshape(-1, 2)).max() < 1e-6
+    assert np.abs(new_b - ref_b.reshape(-1, 2)).max() < 1e-6
+    assert np.abs(new_a - a).max() > 0.5  # the pixels did move
+    np.testing.assert_allclose(triangulate(cal.p, cal.q, up, uq), _svd_dlt(cal, new_a, new_b), atol=1e-9)
+    np.testing.assert_allclose(triangulate(cal.p, cal.q, up, uq, optimal=False), _svd_dlt(cal, a, b), atol=1e-9)
+
+
+def test_compiled_projection_and_undistortion_match_the_numpy_views() -> None:
+    from appliance import geometry_kernels
+
+    cal = biplane(DIST5, DIST8)
+    G = cal.packed
+    for index, view in enumerate((cal.p, cal.q)):
+        X = image_filling_points(view, 50)
+        X[7] = view.source_mm - 10.0 * view.optical_axis  # behind the source: no image
+        projected = geometry_kernels.project_into_both(G, X)[index]
+        np.testing.assert_allclose(projected, view.project(X), atol=1e-9)
+        observed = view.project(X[:5])
+        ideal = [geometry_kernels.ideal_pixel(G, index * geometry_kernels.VIEW_SIZE, u, v) for u, v in observed]
+        np.testing.assert_allclose(ideal, view.undistort_points(observed), atol=1e-9)
+    c, d, half = np.array([3.0, -2.0, 5.0]), np.array([0.6, 0.0, 0.8]), 7.0
+    segment = geometry_kernels.project_segment(G, *c, *d, half)
+    for index, view in enumerate((cal.p, cal.q)):
+        np.testing.assert_allclose(segment[index], view.project(np.vstack([c, c + half * d, c - half * d])),
+                                   atol=1e-9)
+
+
 def test_triangulation_input_checks() -> None:
     cal = biplane()
     with pytest.raises(ValueError, match="pair up"):
