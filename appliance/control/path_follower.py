@@ -24,7 +24,7 @@ noisy tracked axis: a 1 degree axis error times the aligning field's own gradien
 0.5 mT) is a force error of ~3.5 uN, as much as the push. ``Command.moment_direction`` gives it.
 
 Each frame's step is one compiled kernel (:mod:`appliance.compiled`; ``_follow``) on the follower's
-state kept in a small array (``_STATE_*`` indices), the same arithmetic as the step-by-step list above
+state kept in a small array (the ``_S_HINT`` ... ``_FIELD_DIR`` offsets), the same arithmetic as the step-by-step list above
 in ~10 us instead of ~60 numpy calls (issue 8: control and allocation within 300 us at p99).
 
 The follower only uses what the appliance knows (posture, time, path); it never sees the
@@ -151,9 +151,10 @@ def load_path(path: str | Path | None = None) -> FloatArray:
         raise ConfigError(f"{file}: path: {err}") from err
 
 
-# The follower's state between frames (NaN: not known yet, i.e. None before the first frame).
-_STATE_S_HINT, _STATE_T_LAST, _STATE_CARROT_S, _STATE_T_START = 0, 1, 2, 3
-_STATE_INTEGRAL, _STATE_VELOCITY, _STATE_FIELD_DIR = slice(4, 7), slice(7, 10), slice(10, 13)
+# The follower's state between frames, one float array (NaN: not known yet, before the first frame):
+# arc length of the last nearest point, time of the last frame, carrot's arc length, time of the start,
+# then three 3-vectors from these offsets: integral of the error, commanded velocity, field direction.
+_S_HINT, _T_LAST, _CARROT_S, _T_START, _INTEGRAL, _VELOCITY, _FIELD_DIR = 0, 1, 2, 3, 4, 7, 10
 _STATE_SIZE = 13
 # The settings as the kernel reads them, in this order.
 _SETTINGS = ("speed_mm_s", "max_speed_mm_s", "field_t", "field_ramp_s", "cross_track_gain_per_s",
@@ -178,8 +179,8 @@ class PathFollower:
     def reset(self) -> None:
         """Forget the previous frame (after a hold, or to start again)."""
         self._state[:] = np.nan
-        self._state[_STATE_INTEGRAL] = 0.0
-        self._state[_STATE_VELOCITY] = 0.0
+        self._state[_INTEGRAL:_INTEGRAL + 3] = 0.0
+        self._state[_VELOCITY:_VELOCITY + 3] = 0.0
 
     def tangent_at(self, s_mm: float) -> FloatArray:
         return _tangent_at(self.s, self._tangents, float(s_mm)).copy()
@@ -187,7 +188,7 @@ class PathFollower:
     def nearest(self, point_mm: ArrayLike) -> tuple[float, FloatArray]:
         """(arc length, point) of the nearest path point, near the previous one when known."""
         p = np.asarray(point_mm, dtype=np.float64).reshape(3)
-        s, q = _nearest(self.points, self.s, self._tangents, p, self._state[_STATE_S_HINT])
+        s, q = _nearest(self.points, self.s, self._tangents, p, self._state[_S_HINT])
         return s, q
 
     def command(self, posture_centroid_mm: ArrayLike, direction: ArrayLike, t_s: float) -> Command:
@@ -285,13 +286,13 @@ def _follow(points: FloatArray, s_path: FloatArray, tangents: FloatArray, settin
         settings[8], settings[9], settings[10], settings[11], settings[12], settings[13], settings[14])
     length = s_path[-1]
     axis = direction / _norm3(direction)
-    t_last = state[1]
+    t_last = state[_T_LAST]
     dt = 0.0 if math.isnan(t_last) else min(max(t_s - t_last, 0.0), 0.2)
-    state[1] = t_s
-    if math.isnan(state[3]):
-        state[3] = t_s
-    s, nearest = _nearest(points, s_path, tangents, p, state[0])
-    state[0] = s
+    state[_T_LAST] = t_s
+    if math.isnan(state[_T_START]):
+        state[_T_START] = t_s
+    s, nearest = _nearest(points, s_path, tangents, p, state[_S_HINT])
+    state[_S_HINT] = s
     tangent = _tangent_at(s_path, tangents, s)
     offset = p - nearest
     lateral = offset - (offset[0] * tangent[0] + offset[1] * tangent[1] + offset[2] * tangent[2]) * tangent
@@ -300,14 +301,14 @@ def _follow(points: FloatArray, s_path: FloatArray, tangents: FloatArray, settin
 
     # The carrot: a target point moving along the path at the cruise speed, never more than
     # max_lead_mm ahead of the robot (so it waits when the robot is held back).
-    if math.isnan(state[2]):
-        state[2] = s
-    cruise = _cruise(settings, length, state[2])
-    carrot = min(state[2] + cruise * dt, s + max_lead, length)
-    state[2] = carrot
+    if math.isnan(state[_CARROT_S]):
+        state[_CARROT_S] = s
+    cruise = _cruise(settings, length, state[_CARROT_S])
+    carrot = min(state[_CARROT_S] + cruise * dt, s + max_lead, length)
+    state[_CARROT_S] = carrot
     carrot_tangent = _tangent_at(s_path, tangents, carrot)
     error = p - _point_at(points, s_path, carrot)
-    integral = state[4:7]
+    integral = state[_INTEGRAL:_INTEGRAL + 3]   # views: updated in place
     if done:
         wanted = np.zeros(3)
         integral[:] = 0.0
@@ -322,7 +323,7 @@ def _follow(points: FloatArray, s_path: FloatArray, tangents: FloatArray, settin
     wanted_speed = _norm3(wanted)
     if wanted_speed > max_speed:
         wanted *= max_speed / wanted_speed
-    velocity = state[7:10]
+    velocity = state[_VELOCITY:_VELOCITY + 3]
     change = wanted - velocity
     max_change = max_accel * dt if dt > 0.0 else math.inf
     change_norm = _norm3(change)
@@ -335,7 +336,7 @@ def _follow(points: FloatArray, s_path: FloatArray, tangents: FloatArray, settin
     force = drag_axial * axial * axis + drag_lateral * (v_m_s - axial * axis)
 
     ahead = _tangent_at(s_path, tangents, min(s + lookahead, length))
-    field_dir = state[10:13]
+    field_dir = state[_FIELD_DIR:_FIELD_DIR + 3]
     if math.isnan(field_dir[0]) or dt == 0.0:
         field_dir[:] = ahead
     else:
@@ -343,7 +344,7 @@ def _follow(points: FloatArray, s_path: FloatArray, tangents: FloatArray, settin
     progress = min(max(s / length, 0.0), 1.0)
     # The field (and with it the model-mismatch force) comes up over field_ramp_s, so the
     # integral action builds up with the disturbance instead of after it hit the wall.
-    ramp = 1.0 if field_ramp_s == 0.0 else min(1.0, 0.1 + (t_s - state[3]) / field_ramp_s)
+    ramp = 1.0 if field_ramp_s == 0.0 else min(1.0, 0.1 + (t_s - state[_T_START]) / field_ramp_s)
     return field_t * ramp * field_dir, force, velocity.copy(), nearest, cross_track, progress, done, s
 
 

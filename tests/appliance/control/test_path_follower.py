@@ -113,3 +113,26 @@ def test_default_path_and_bad_path_sections(tmp_path: Path) -> None:
         load_path(typo)
     with pytest.raises(ValueError, match="speed_mm_s"):
         FollowerSettings(speed_mm_s=10.0, max_speed_mm_s=5.0)
+
+
+def test_reset_forgets_the_whole_state_and_commands_do_not_share_it() -> None:
+    """The compiled step keeps its state in one array: after a reset the follower acts as a new one
+    (integral, velocity, carrot, field direction, search window), and two followers never interfere."""
+    path = load_path()
+    used, other = PathFollower(path), PathFollower(path)
+    for i in range(40):
+        used.command(path[60 + i] + [0.3, -0.2, 0.1], [0.0, 1.0, 0.0], i / 30)
+        other.command(path[10] + [0.5, 0.0, 0.0], [1.0, 0.0, 0.0], i / 30)
+    used.reset()
+    fresh = PathFollower(path)
+    for i in range(5):
+        point, t = path[300] + [0.4, 0.1, -0.2], 10.0 + i / 30
+        a, b = used.command(point, [0.0, 0.0, 1.0], t), fresh.command(point, [0.0, 0.0, 1.0], t)
+        for name in ("field_T", "force_N", "velocity_mm_s", "target_mm"):
+            assert np.array_equal(getattr(a, name), getattr(b, name)), name
+        assert (a.s_mm, a.cross_track_mm, a.progress, a.done) == (b.s_mm, b.cross_track_mm, b.progress, b.done)
+    # A returned command is a copy: changing it changes nothing in the follower.
+    a.velocity_mm_s[:] = 1e6
+    a.field_T[:] = 0.0
+    assert np.array_equal(used.command(point, [0.0, 0.0, 1.0], 11.0).field_T,
+                          fresh.command(point, [0.0, 0.0, 1.0], 11.0).field_T)
