@@ -13,11 +13,13 @@ detection looks for candidates.
 """
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import cv2
 import numpy as np
 
+from appliance.recognition import background_kernels
 
 #: Margin (px) by which an interpolated window is grown for the next ROIs to reuse.
 _WINDOW_SLACK_PX = 24
@@ -42,14 +44,17 @@ class LogBackground:
         self.fy = self.shape[0] / hs
         self.fx = self.shape[1] / ws
         self._full: np.ndarray | None = None
+        self._coarse_attenuation: np.ndarray | None = None
         # The last interpolated window, grown by _WINDOW_SLACK_PX: a tracked robot's ROI moves a few
         # pixels a frame, so most ROIs are slices of it.
         self._window: tuple[int, int, int, int, np.ndarray] | None = None
 
     @property
     def coarse_attenuation(self) -> np.ndarray:
-        """``-log(I / B)`` on the coarse grid (float32; robot and vessels positive)."""
-        return self.coarse - self.coarse_log
+        """``-log(I / B)`` on the coarse grid (float32; robot and vessels positive), computed once."""
+        if self._coarse_attenuation is None:
+            self._coarse_attenuation = self.coarse - self.coarse_log
+        return self._coarse_attenuation
 
     @staticmethod
     def _taps(lo: int, hi: int, factor: float, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -89,19 +94,65 @@ class LogBackground:
         return self._full if dtype is None else self._full.astype(dtype)
 
 
+#: Gray-level -> ``log(max(level - dark, 1))`` tables by dark level (one per detector, a few at most).
+_LOG_TABLES: dict[float, np.ndarray] = {}
+
+
+def _log_table(dark_level: float) -> np.ndarray:
+    table = _LOG_TABLES.get(dark_level)
+    if table is None:
+        if len(_LOG_TABLES) >= 8:
+            _LOG_TABLES.clear()
+        levels = np.arange(65536, dtype=np.float32)
+        table = _LOG_TABLES[dark_level] = np.log(np.maximum(levels - np.float32(dark_level), 1.0))
+    return table
+
+
+def _downsample_log(image: np.ndarray, f: int, dark_level: float) -> np.ndarray:
+    """log of the ``f x f`` area mean of ``image`` (dark level removed, floored at 1), float32.
+
+    The mean is rounded to a gray level as OpenCV's ``INTER_AREA`` downsampling of a 16-bit frame
+    rounds it. A 16-bit frame whose sides are multiples of ``f`` (every detector we use) takes one
+    compiled pass; anything else goes through OpenCV (fractional area weights).
+    """
+    h, w = image.shape[:2]
+    hs, ws = max(1, h // f), max(1, w // f)
+    # (OpenCV's 2x2 path rounds half up, unlike its general one: f = 2 is left to it.)
+    if image.dtype == np.uint16 and image.ndim == 2 and h == hs * f and w == ws * f and f != 2:
+        out = np.empty((hs, ws), dtype=np.float32)
+        image = np.ascontiguousarray(image)
+        if f == 4:
+            background_kernels.block_mean_log_4(image.view(np.uint64), _log_table(float(dark_level)), out)
+        else:
+            background_kernels.block_mean_log(image, f, _log_table(float(dark_level)), out)
+        return out
+    small = cv2.resize(image, (ws, hs), interpolation=cv2.INTER_AREA).astype(np.float32)
+    return np.log(np.maximum(small - np.float32(dark_level), 1.0))
+
+
 def log_background(image: np.ndarray, scale_px: int = 48, dark_level: float = 0.0) -> LogBackground:
     """``log(B)`` of the open-field background of ``image`` with dark objects removed.
 
     Downsampling by ``f`` averages ``f^2`` pixels (less noise, cheaper filters; done on the raw 16-bit
-    frame, so no full-frame float copy is made); the closing at ``scale_px`` removes anything narrower
-    than that; a blur then smooths the plateau steps of the max/min filters.
+    frame in one pass, so no full-frame float copy is made): that grid is where :func:`detect` looks
+    for candidates. The open field is smooth over far more than ``f`` pixels, so its closing at
+    ``scale_px`` (which removes anything narrower) and the blur that smooths the closing's plateau
+    steps run on a grid twice as coarse, a quarter of the pixels, and the result is interpolated back
+    onto the detection grid.
     """
     h, w = image.shape[:2]
     f = max(1, min(8, scale_px // 12))
-    small = cv2.resize(image, (max(1, w // f), max(1, h // f)), interpolation=cv2.INTER_AREA).astype(np.float32)
-    logs = np.log(np.maximum(small - np.float32(dark_level), 1.0))
-    k = max(3, (scale_px // f) | 1)
-    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
-    closed = cv2.morphologyEx(logs, cv2.MORPH_CLOSE, kernel, borderType=cv2.BORDER_REPLICATE)
+    logs = _downsample_log(image, f, dark_level)
+    hs, ws = logs.shape
+    hb, wb = max(1, hs // 2), max(1, ws // 2)
+    field = cv2.resize(logs, (wb, hb), interpolation=cv2.INTER_AREA)
+    k = max(3, (scale_px // (2 * f)) | 1)
+    closed = cv2.morphologyEx(field, cv2.MORPH_CLOSE, _ellipse(k), borderType=cv2.BORDER_REPLICATE)
     closed = cv2.GaussianBlur(closed, (0, 0), k / 3.0, borderType=cv2.BORDER_REPLICATE)
-    return LogBackground(logs, closed, (h, w))
+    coarse = cv2.resize(closed, (ws, hs), interpolation=cv2.INTER_LINEAR)
+    return LogBackground(logs, coarse, (h, w))
+
+
+@functools.lru_cache(maxsize=8)
+def _ellipse(k: int) -> np.ndarray:
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))

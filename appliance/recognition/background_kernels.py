@@ -1,0 +1,285 @@
+"""Compiled kernels of the cold path: the background's one pass over the frame and the coarse
+candidate search of a full-frame detection (issue 8).
+
+A cold frame pair must cost a few times the memory floor (copying both frames), so the only
+full-resolution work is one read of the 16-bit frame that block-averages it; everything after runs on
+the coarse grid (1/16 of the pixels), where a handful of OpenCV calls (closing, blur, resampling) are
+cheap and the per-pixel work that numpy would spread over dozens of calls is one compiled loop:
+
+* :func:`block_mean_log` / :func:`block_mean_log_4` - the ``f x f`` block mean, rounded to a gray
+  level exactly as OpenCV's ``INTER_AREA`` downsampling of a 16-bit frame rounds it, then
+  ``log(max(mean - dark, 1))`` read from a table of the 65536 gray levels (a table read is several
+  times cheaper than a logarithm); the ``f = 4`` variant (the default scale) adds whole 64-bit words;
+* :func:`median_abs_step` - the median absolute difference of horizontal neighbours on a row
+  subsample (the robust noise estimate), by radix selection instead of a sort;
+* :func:`coarse_components` - threshold, 8-connected components and, per component, its area,
+  bounding box, peak and the bounding box of its strong core, in one flood fill that only visits
+  pixels above the threshold.
+
+Kernels take plain arrays and scalars; :mod:`.background` and :mod:`.detection` keep the Python API.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from appliance.compiled import kernel, register_warm_up
+
+#: Columns of :func:`coarse_components`' statistics rows.
+STAT_AREA, STAT_X0, STAT_Y0, STAT_X1, STAT_Y1, STAT_CORE_X0, STAT_CORE_Y0, STAT_CORE_X1, STAT_CORE_Y1 = range(9)
+STAT_COLUMNS = 9
+
+
+@kernel
+def block_mean_log(image: np.ndarray, f: int, table: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover
+    """``out[i, j] = table[mean of image[i*f:(i+1)*f, j*f:(j+1)*f]]``, the mean rounded to the nearest
+    gray level (half to even, in float32) as OpenCV's ``INTER_AREA`` rounds a 16-bit frame's."""
+    hs, ws = out.shape
+    scale = np.float32(1.0) / np.float32(f * f)
+    # The f rows of a block row are summed into one row first (contiguous, vectorised: this is the
+    # pass over the frame), then each block's f sums; the gray levels are gathered from the table last.
+    acc = np.empty(ws * f, dtype=np.int32)
+    level = np.empty(ws, dtype=np.int32)
+    for i in range(hs):
+        acc[:] = 0
+        for r in range(f):
+            row = image[i * f + r]
+            for x in range(ws * f):
+                acc[x] += np.int32(row[x])
+        for j in range(ws):
+            s = np.int32(0)
+            for k in range(f):
+                s += acc[j * f + k]
+            level[j] = np.int32(np.rint(np.float32(s) * scale))
+        o = out[i]
+        for j in range(ws):
+            o[j] = table[level[j]]
+
+
+@kernel
+def block_mean_log_4(words: np.ndarray, table: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover
+    """:func:`block_mean_log` for ``f = 4`` (the default scale), the same values, about three times faster.
+
+    ``words`` is the 16-bit frame viewed as 64-bit words, four pixels each: one word is one block's
+    row. Masks split a word into two 32-bit lanes holding pixel sums ``p0 + p1`` and ``p2 + p3``
+    (four rows of these stay below 2^32), so a block's sum is built with whole-word additions that
+    vectorise, and only the final lane sum is per block.
+    """
+    hs, ws = out.shape
+    pairs = np.uint64(0x0000FFFF0000FFFF)
+    low = np.uint64(0xFFFFFFFF)
+    acc = np.empty(ws, dtype=np.uint64)
+    level = np.empty(ws, dtype=np.int64)
+    for i in range(hs):
+        row = words[4 * i]
+        for j in range(ws):
+            v = row[j]
+            acc[j] = (v & pairs) + ((v >> np.uint64(16)) & pairs)
+        for r in range(1, 4):
+            row = words[4 * i + r]
+            for j in range(ws):
+                v = row[j]
+                acc[j] += (v & pairs) + ((v >> np.uint64(16)) & pairs)
+        for j in range(ws):
+            a = acc[j]
+            s = np.int64((a & low) + (a >> np.uint64(32)))
+            # s / 16 rounded half to even, in integers (exact, as the float32 product is for 16).
+            level[j] = (s + 7 + ((s >> 4) & 1)) >> 4
+        o = out[i]
+        for j in range(ws):
+            o[j] = table[level[j]]
+
+
+@kernel
+def _select_digit(hist: np.ndarray, k: int) -> tuple[int, int]:  # pragma: no cover
+    """The bin holding the ``k``-th smallest (0-based) of the values counted in the four interleaved
+    copies of ``hist`` (4, bins), and ``k`` within that bin."""
+    digit = 0
+    while True:
+        count = hist[0, digit] + hist[1, digit] + hist[2, digit] + hist[3, digit]
+        if k < count:
+            return digit, k
+        k -= count
+        digit += 1
+
+
+@kernel
+def _kth_smallest(bits: np.ndarray, k: int) -> np.uint32:  # pragma: no cover
+    """The ``k``-th smallest (0-based) of ``bits``, the bit patterns of non-negative finite float32
+    values (ordered like the values), by radix selection on 11, 11 and 10 bits: each pass histograms
+    only the values that share the digits chosen so far, so ties cost nothing (unlike a quickselect's
+    partitions). Four histogram copies, used in turn, keep runs of equal digits from queueing on one
+    counter."""
+    n = bits.shape[0]
+    hist = np.zeros((4, 2048), dtype=np.int64)
+    for i in range(n):
+        hist[i & 3, bits[i] >> np.uint32(21)] += 1
+    digit, k = _select_digit(hist, k)
+    top = np.uint32(digit)
+    # The values with that top digit, gathered once: the next passes only see them.
+    rest = np.empty(n, dtype=np.uint32)
+    m = 0
+    for i in range(n):
+        if bits[i] >> np.uint32(21) == top:
+            rest[m] = bits[i]
+            m += 1
+    hist[:, :] = 0
+    for i in range(m):
+        hist[i & 3, (rest[i] >> np.uint32(10)) & np.uint32(2047)] += 1
+    digit, k = _select_digit(hist, k)
+    middle = (top << np.uint32(11)) | np.uint32(digit)
+    hist[:, :] = 0
+    for i in range(m):
+        if rest[i] >> np.uint32(10) == middle:
+            hist[i & 3, rest[i] & np.uint32(1023)] += 1
+    digit, k = _select_digit(hist, k)
+    return (middle << np.uint32(10)) | np.uint32(digit)
+
+
+@kernel
+def median_abs_step(a: np.ndarray, row_step: int) -> float:  # pragma: no cover
+    """Median of ``|a[y, x + 1] - a[y, x]|`` over every ``row_step``-th row, as ``np.median`` gives it
+    (the mean of the two middle values for an even count; NaN if there is no difference or one is
+    not finite)."""
+    h, w = a.shape
+    rows = (h + row_step - 1) // row_step
+    n = rows * (w - 1)
+    if w < 2 or n == 0:
+        return np.nan
+    d = np.empty(n, dtype=np.float32)
+    k = 0
+    for y in range(0, h, row_step):
+        row = a[y]
+        for x in range(w - 1):
+            d[k + x] = abs(row[x + 1] - row[x])
+        k += w - 1
+    bits = d.view(np.uint32)
+    largest = np.uint32(0)
+    for i in range(n):
+        b = bits[i]
+        largest = max(largest, b)
+    if largest >= np.uint32(0x7F800000):   # an infinity or a NaN
+        return np.nan
+    lower = _kth_smallest(bits, (n - 1) // 2)
+    if n % 2:
+        upper = lower
+    else:
+        # The next order statistic: the same value if it is repeated, else the smallest above it.
+        at_most = 0
+        above = np.uint32(0xFFFFFFFF)
+        for i in range(n):
+            b = bits[i]
+            at_most += b <= lower
+            if b > lower:
+                above = min(above, b)
+        upper = lower if at_most > n // 2 else above
+    pair = np.array([lower, upper], dtype=np.uint32).view(np.float32)
+    return float((pair[0] + pair[1]) / np.float32(2.0))
+
+
+@kernel
+def coarse_components(a: np.ndarray, threshold: float, core_fraction: float,
+                      labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
+    """8-connected components of ``a > threshold``, labelled 1.. in raster order of their first pixel
+    (as OpenCV labels them) into ``labels`` (zeroed by the caller), and one row of statistics each:
+    area, bounding box ``x0, y0, x1, y1`` (exclusive ends), and the bounding box of the core
+    (pixels at or above ``core_fraction`` of the component's peak); and each component's peak.
+    Row 0 (the background's) is left zero."""
+    h, w = a.shape
+    stack = np.empty(min(h * w, 4096), dtype=np.int32)
+    stats = np.zeros((64, STAT_COLUMNS), dtype=np.int64)
+    peaks = np.zeros(64, dtype=np.float32)
+    n = 1
+    for y0 in range(h):
+        line = a[y0]
+        # Most rows hold nothing above the threshold: a branch-free count tells (vectorised; a float
+        # maximum is not, without fastmath).
+        hits = 0
+        for x in range(w):
+            hits += line[x] > threshold
+        if hits == 0:
+            continue
+        for x0 in range(w):
+            if labels[y0, x0] != 0 or not line[x0] > threshold:
+                continue
+            if n == stats.shape[0]:
+                bigger = np.zeros((2 * n, STAT_COLUMNS), dtype=np.int64)
+                bigger[:n] = stats
+                stats = bigger
+                more = np.zeros(2 * n, dtype=np.float32)
+                more[:n] = peaks
+                peaks = more
+            labels[y0, x0] = n
+            top = 0
+            stack[top] = y0 * w + x0
+            top += 1
+            area = 0
+            bx0, by0, bx1, by1 = x0, y0, x0, y0
+            peak = a[y0, x0]
+            # The pixels of the component are pushed once each; the stack's first `area` entries end
+            # up holding all of them (popped entries are never overwritten), for the core's pass.
+            head = 0
+            while head < top:
+                p = stack[head]
+                head += 1
+                y = p // w
+                x = p - y * w
+                area += 1
+                v = a[y, x]
+                peak = max(peak, v)
+                bx0 = min(bx0, x)
+                bx1 = max(bx1, x)
+                by1 = max(by1, y)
+                for dy in range(-1, 2):
+                    yy = y + dy
+                    if yy < 0 or yy >= h:
+                        continue
+                    for dx in range(-1, 2):
+                        xx = x + dx
+                        if xx < 0 or xx >= w or labels[yy, xx] != 0:
+                            continue
+                        if a[yy, xx] > threshold:
+                            labels[yy, xx] = n
+                            if top == stack.shape[0]:
+                                longer = np.empty(2 * top, dtype=np.int32)
+                                longer[:top] = stack
+                                stack = longer
+                            stack[top] = yy * w + xx
+                            top += 1
+            level = core_fraction * peak
+            cx0, cy0, cx1, cy1 = w, h, -1, -1
+            for k in range(top):
+                p = stack[k]
+                y = p // w
+                x = p - y * w
+                if a[y, x] >= level:
+                    cx0 = min(cx0, x)
+                    cx1 = max(cx1, x)
+                    cy0 = min(cy0, y)
+                    cy1 = max(cy1, y)
+            row = stats[n]
+            row[STAT_AREA] = area
+            row[STAT_X0] = bx0
+            row[STAT_Y0] = by0
+            row[STAT_X1] = bx1 + 1
+            row[STAT_Y1] = by1 + 1
+            row[STAT_CORE_X0] = cx0
+            row[STAT_CORE_Y0] = cy0
+            row[STAT_CORE_X1] = cx1 + 1
+            row[STAT_CORE_Y1] = cy1 + 1
+            peaks[n] = peak
+            n += 1
+    return stats[:n], peaks[:n]
+
+
+def warm_up() -> None:
+    """Compile every kernel of this module on tiny inputs (see :mod:`appliance.compiled`)."""
+    image = np.full((8, 8), 1000, dtype=np.uint16)
+    table = np.zeros(65536, dtype=np.float32)
+    small = np.zeros((2, 2), dtype=np.float32)
+    block_mean_log(image, 4, table, small)
+    block_mean_log_4(image.view(np.uint64), table, small)
+    median_abs_step(small, 2)
+    coarse_components(small, 0.5, 0.5, np.zeros((2, 2), dtype=np.int32))
+
+
+register_warm_up(__name__)

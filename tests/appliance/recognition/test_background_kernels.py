@@ -1,0 +1,122 @@
+"""The cold path's compiled kernels give what the OpenCV/numpy steps they replaced give: the block mean's
+rounding, the noise median, the components and their statistics."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from appliance.recognition import background_kernels as kernels
+from appliance.recognition.background import _downsample_log, _log_table
+
+
+def _reference_log(image: np.ndarray, f: int, dark: float) -> np.ndarray:
+    h, w = image.shape
+    small = cv2.resize(image, (w // f, h // f), interpolation=cv2.INTER_AREA).astype(np.float32)
+    return np.log(np.maximum(small - np.float32(dark), 1.0))
+
+
+@pytest.mark.parametrize("f", [1, 2, 3, 4, 8])  # 2: OpenCV rounds half up (its own 2x2 path); we use OpenCV
+def test_block_mean_log_rounds_like_opencv_area_downsampling(f: int) -> None:
+    rng = np.random.default_rng(f)
+    h, w = 24 * f, 40 * f
+    image = rng.integers(0, 65536, (h, w), dtype=np.uint16)
+    # Blocks whose sums fall half-way between two gray levels (ties round to even), the extremes of
+    # the 16-bit range (no overflow), and levels at and below the dark level (floored at 1).
+    image[:f, :f * 6] = np.repeat([[0, 1, 2, 3, 65535, 65534]], f * f, axis=0).reshape(f, f, 6).transpose(0, 2, 1).reshape(f, 6 * f)
+    image[f:2 * f, :4 * f] = 65535
+    if f > 1:
+        image[2 * f:3 * f, :f] = 1000
+        image[2 * f, 0] = 1001   # a sum of (f^2 - 1) * 1000 + 1001: a fraction 1/f^2 above 1000
+    out = _downsample_log(image, f, 1000.0)
+    np.testing.assert_array_equal(out, _reference_log(image, f, 1000.0))
+
+
+def test_block_mean_log_4_ties_and_extremes() -> None:
+    # Every block sum from 0 to 16 * 65535 in steps that hit .5 exactly: s = 16 q + 8.
+    sums = np.concatenate([np.arange(8, 16 * 65535, 16 * 4099 + 16), [0, 7, 8, 9, 24, 16 * 65535]])
+    blocks = np.zeros((len(sums), 16), dtype=np.int64)
+    for i, s in enumerate(sums):
+        q, r = divmod(int(s), 16)
+        blocks[i] = q
+        blocks[i, :r] += 1
+    image = blocks.reshape(1, len(sums), 4, 4).transpose(0, 2, 1, 3).reshape(4, 4 * len(sums)).astype(np.uint16)
+    out = np.empty((1, len(sums)), dtype=np.float32)
+    table = _log_table(0.0)
+    kernels.block_mean_log_4(image.view(np.uint64), table, out)
+    np.testing.assert_array_equal(out, _reference_log(image, 4, 0.0))
+    generic = np.empty_like(out)
+    kernels.block_mean_log(image, 4, table, generic)
+    np.testing.assert_array_equal(generic, out)
+
+
+def test_downsampling_of_sizes_that_are_not_multiples_goes_through_opencv() -> None:
+    rng = np.random.default_rng(7)
+    image = rng.integers(900, 40000, (150, 213), dtype=np.uint16)
+    np.testing.assert_allclose(_downsample_log(image, 4, 1000.0), _reference_log(image, 4, 1000.0), atol=1e-6)
+
+
+@pytest.mark.parametrize("shape, step", [((9, 12), 2), ((40, 31), 4), ((64, 64), 4), ((5, 2), 1), ((3, 3), 3)])
+def test_median_abs_step_equals_numpy(shape: tuple[int, int], step: int) -> None:
+    rng = np.random.default_rng(shape[0] * 100 + shape[1])
+    for trial in range(20):
+        a = rng.normal(9.0, 0.01, shape).astype(np.float32)
+        if trial % 3 == 0:   # many ties, as on a table-quantised log image
+            a = np.round(a, 2).astype(np.float32)
+        if trial % 5 == 0:
+            a[:, : shape[1] // 2] = 9.0   # zero differences: the median may be an exact 0
+        expected = float(np.median(np.abs(np.diff(a[::step], axis=1))))
+        assert kernels.median_abs_step(a, step) == expected
+
+
+def test_median_abs_step_has_no_answer_for_nothing_or_a_non_finite_value() -> None:
+    assert np.isnan(kernels.median_abs_step(np.zeros((4, 1), np.float32), 1))
+    a = np.zeros((4, 6), np.float32)
+    a[2, 3] = np.inf
+    assert np.isnan(kernels.median_abs_step(a, 1))
+    a[2, 3] = np.nan
+    assert np.isnan(kernels.median_abs_step(a, 1))
+
+
+def test_coarse_components_match_opencv_and_the_core_boxes() -> None:
+    rng = np.random.default_rng(11)
+    a = cv2.GaussianBlur(rng.normal(0, 1, (96, 120)).astype(np.float32), (0, 0), 2.0)
+    a[40:44, 10:90] += 0.8   # a long component spanning several noise blobs
+    threshold, fraction = 0.15, 0.5
+    labels = np.zeros(a.shape, dtype=np.int32)
+    stats, peaks = kernels.coarse_components(a, threshold, fraction, labels)
+    n, ref_labels, ref_stats, _ = cv2.connectedComponentsWithStats((a > threshold).view(np.uint8), connectivity=8)
+    assert n > 5 and len(stats) == n
+    # The same partition (OpenCV numbers its components in the order of 2x2 blocks, ours in the order
+    # of their first pixel: the numbers may differ, the components may not).
+    to_ref = np.zeros(n, dtype=np.int64)
+    to_ref[labels.ravel()] = ref_labels.ravel()
+    np.testing.assert_array_equal(to_ref[labels], ref_labels)
+    assert len(set(to_ref.tolist())) == n
+    ref = ref_stats[to_ref]
+    np.testing.assert_array_equal(stats[1:, kernels.STAT_AREA], ref[1:, cv2.CC_STAT_AREA])
+    np.testing.assert_array_equal(stats[1:, kernels.STAT_X0], ref[1:, cv2.CC_STAT_LEFT])
+    np.testing.assert_array_equal(stats[1:, kernels.STAT_Y0], ref[1:, cv2.CC_STAT_TOP])
+    np.testing.assert_array_equal(stats[1:, kernels.STAT_X1] - stats[1:, kernels.STAT_X0], ref[1:, cv2.CC_STAT_WIDTH])
+    np.testing.assert_array_equal(stats[1:, kernels.STAT_Y1] - stats[1:, kernels.STAT_Y0], ref[1:, cv2.CC_STAT_HEIGHT])
+    # Numbered in raster order of their first pixel.
+    firsts = [int(np.flatnonzero(labels.ravel() == label)[0]) for label in range(1, n)]
+    assert firsts == sorted(firsts)
+    for label in range(1, n):
+        comp = labels == label
+        peak = float(a[comp].max())
+        assert peaks[label] == peak
+        ys, xs = np.nonzero(comp & (a >= fraction * peak))
+        box = stats[label, kernels.STAT_CORE_X0:kernels.STAT_CORE_Y1 + 1]
+        assert tuple(box) == (xs.min(), ys.min(), xs.max() + 1, ys.max() + 1)
+
+
+def test_coarse_components_of_nothing_and_of_everything() -> None:
+    a = np.zeros((30, 40), np.float32)
+    stats, peaks = kernels.coarse_components(a, 0.5, 0.5, np.zeros(a.shape, np.int32))
+    assert len(stats) == 1 and len(peaks) == 1
+    a[:] = 1.0   # one component filling the image: the flood fill's stack grows past its first size
+    a = np.ascontiguousarray(np.tile(a, (3, 3)))
+    labels = np.zeros(a.shape, np.int32)
+    stats, peaks = kernels.coarse_components(a, 0.5, 0.5, labels)
+    assert len(stats) == 2 and stats[1, kernels.STAT_AREA] == a.size and (labels == 1).all()
