@@ -192,6 +192,8 @@ class ActuationModel:
         self._radii = np.array(radii)
         self._turns = np.array(turns)
         self._owner = np.array(owner, dtype=np.int64)
+        #: The loops as the kernels take them: centres (m), unit axes, radii (m), turns, owning coil.
+        self.loops = (self._centres, self._axes, self._radii, self._turns, self._owner)
         # Sums loop contributions into their coil: (n_coils, n_loops).
         self._gather = np.zeros((self.n, len(owner)))
         self._gather[owner, np.arange(len(owner))] = 1.0

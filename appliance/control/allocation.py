@@ -30,7 +30,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from appliance.compiled import kernel, register_warm_up
-from appliance.control.actuation import ActuationModel
+from appliance.control.actuation import _FD_STEP_M, ActuationModel, _field_and_gradient
 
 logger = logging.getLogger(__name__)
 
@@ -80,6 +80,7 @@ class CurrentAllocator:
             raise ValueError(f"max_power_w must be positive, got {max_power_w}")
         self.resistance_ohm = model.resistance_ohm
         self.rcond = rcond
+        self._limits = np.vstack([self.max_current_a, self.max_slew_a_per_s, self.resistance_ohm])
 
     def matrices(self, position_mm: ArrayLike, moment_am2: ArrayLike) -> tuple[FloatArray, FloatArray]:
         """(3 x n field per ampere, 3 x n force per ampere) at ``position_mm`` for ``moment_am2``."""
@@ -99,27 +100,43 @@ class CurrentAllocator:
         ``previous_a`` are the currents now commanded and ``dt_s`` the time until the new ones take
         effect (slew budget = max_slew_a_per_s * dt_s).
         """
-        n = self.model.n
-        field_t = np.asarray(field_T, dtype=np.float64).reshape(3)
-        force_n = np.asarray(force_N, dtype=np.float64).reshape(3)
-        moment = np.asarray(moment_Am2, dtype=np.float64).reshape(3)
-        previous = np.asarray(previous_a, dtype=np.float64).reshape(n)
-        if not (_all_finite(field_t) and _all_finite(force_n) and _all_finite(moment)):
-            raise ValueError("field, force and moment must be finite")
+        # Fresh float64 copies (a read-only or strided argument would make the kernel compile again),
+        # and one kernel call from the actuation matrices to the currents: after a frame's recognition
+        # has cycled the caches, every Python-level call here costs ~20 us, not the ~1 us of a warm loop.
+        request = np.concatenate((field_T, force_N, moment_Am2), axis=None, dtype=np.float64)
+        position = np.array(position_mm, dtype=np.float64).reshape(-1)
+        previous = np.array(previous_a, dtype=np.float64).reshape(-1)
+        if request.size != 9 or position.size != 3 or previous.size != self.model.n:
+            raise ValueError(f"position, field, force and moment need 3 values each and previous_a {self.model.n}")
         if not dt_s > 0.0:
             raise ValueError(f"dt_s must be positive, got {dt_s}")
-        b_per_amp, gradient = self.model.field_and_gradient_per_amp(position_mm)
-        currents, scale, code, achieved_field, achieved_force, residual = _allocate(
-            b_per_amp, gradient, field_t, force_n, moment, previous, float(dt_s), self.max_current_a,
-            self.max_slew_a_per_s, self.max_power_w, self.resistance_ohm, self.rcond)
+        finite, currents, scale, code, achieved_field, achieved_force, residual = _allocate_at(
+            *self.model.loops, position, request, previous, float(dt_s), self._limits, self.max_power_w, self.rcond)
+        if not finite:
+            raise ValueError("field, force and moment must be finite")
         limited_by = _LIMITED_BY[code]
         if limited_by is not None:
             logger.debug("allocation limited by %s (scale %.3f)", limited_by, scale)
         return Allocation(currents, scale, limited_by, achieved_field, achieved_force, residual)
 
 
-def _all_finite(v: FloatArray) -> bool:
-    return math.isfinite(v[0]) and math.isfinite(v[1]) and math.isfinite(v[2])
+@kernel
+def _allocate_at(centres: FloatArray, axes: FloatArray, radii: FloatArray, turns: FloatArray,
+                 owner: NDArray[np.int64], position_mm: FloatArray, request: FloatArray, previous: FloatArray,
+                 dt_s: float, limits: FloatArray, max_power_w: float, rcond: float
+                 ) -> tuple[bool, FloatArray, float, int, FloatArray, FloatArray, float]:
+    """:meth:`CurrentAllocator.allocate` in one call: ``request`` is field (T), force (N), moment (A m^2);
+    ``limits`` rows are max current, max slew and resistance. The first value is False (and nothing
+    computed) when the request is not finite."""
+    n = limits.shape[1]
+    for value in request:
+        if not math.isfinite(value):
+            return False, np.zeros(n), 0.0, 0, np.zeros(3), np.zeros(3), 0.0
+    b_per_amp, gradient = _field_and_gradient(centres, axes, radii, turns, owner, n, position_mm * 1e-3, _FD_STEP_M)
+    currents, scale, code, achieved_field, achieved_force, residual = _allocate(
+        b_per_amp, gradient, request[0:3], request[3:6], request[6:9], previous, dt_s, limits[0], limits[1],
+        max_power_w, limits[2], rcond)
+    return True, currents, scale, code, achieved_field, achieved_force, residual
 
 
 @kernel
@@ -139,9 +156,70 @@ def _solve(b_per_amp: FloatArray, f_per_amp: FloatArray, field_t: FloatArray, fo
     size = math.sqrt(np.sum(y * y))
     if size < 1e-12:   # below 1 pT and 1e-14 |m| T/m: nothing to do
         return np.zeros(n), 0.0, a
-    currents = np.linalg.lstsq(a, y, rcond=rcond)[0]
+    currents = _min_norm_solution(a, y, rcond)
     error = a @ currents - y
     return currents, math.sqrt(np.sum(error * error)) / size, a
+
+
+@kernel
+def _min_norm_solution(a: FloatArray, y: FloatArray, rcond: float) -> FloatArray:
+    """``np.linalg.lstsq(a, y, rcond)[0]`` for a wide matrix (rows <= columns), the common case by QR.
+
+    With A^T = Q R (Householder), x = Q R^-T y solves A x = y and lies in the row space of A: the
+    minimum-norm solution, which is what ``lstsq`` returns while no singular value falls under
+    ``rcond`` times the largest. R's diagonal bounds the singular values within a factor of ~2^rows,
+    so when its smallest entry is under 1e-6 of its largest (or A is tall) the SVD-based ``lstsq``
+    decides instead. QR is a few dozen lines of loops; LAPACK's gelsd is a large routine whose first
+    call after a frame's recognition costs ~100 us of cache misses.
+    """
+    m, n = a.shape
+    if m > n:
+        return np.linalg.lstsq(a, y, rcond=rcond)[0]
+    work = a.T.copy()                     # n x m, becomes R in its top m rows
+    reflectors = np.zeros((n, m))
+    betas = np.zeros(m)
+    for j in range(m):
+        norm = 0.0
+        for i in range(j, n):
+            norm += work[i, j] * work[i, j]
+        norm = math.sqrt(norm)
+        if norm == 0.0:
+            return np.linalg.lstsq(a, y, rcond=rcond)[0]
+        alpha = -norm if work[j, j] >= 0.0 else norm
+        vv = 0.0
+        for i in range(j, n):
+            reflectors[i, j] = work[i, j]
+        reflectors[j, j] -= alpha
+        for i in range(j, n):
+            vv += reflectors[i, j] * reflectors[i, j]
+        betas[j] = 2.0 / vv
+        for k in range(j, m):
+            dot = 0.0
+            for i in range(j, n):
+                dot += reflectors[i, j] * work[i, k]
+            dot *= betas[j]
+            for i in range(j, n):
+                work[i, k] -= dot * reflectors[i, j]
+    largest, smallest = 0.0, math.inf
+    for j in range(m):
+        largest = max(largest, abs(work[j, j]))
+        smallest = min(smallest, abs(work[j, j]))
+    if smallest <= 1e-6 * largest or 1e-6 < rcond:
+        return np.linalg.lstsq(a, y, rcond=rcond)[0]
+    z = np.zeros(n)                        # R^T z = y, forward substitution
+    for j in range(m):
+        total = y[j]
+        for k in range(j):
+            total -= work[k, j] * z[k]
+        z[j] = total / work[j, j]
+    for j in range(m - 1, -1, -1):         # x = Q z, the reflectors in reverse order
+        dot = 0.0
+        for i in range(j, n):
+            dot += reflectors[i, j] * z[i]
+        dot *= betas[j]
+        for i in range(j, n):
+            z[i] -= dot * reflectors[i, j]
+    return z
 
 
 @kernel
@@ -215,12 +293,16 @@ def _projection(normalised: FloatArray, currents: FloatArray, ideal: FloatArray)
 
 
 def warm_up() -> None:
-    """Compile the kernels of this module on a two-coil problem (see :mod:`appliance.compiled`)."""
+    """Compile the kernels of this module on one- and two-coil problems (see :mod:`appliance.compiled`)."""
     ones, unit = np.ones(2), np.array([0.0, 0.0, 1e-3])
     b_per_amp = np.array([[1e-3, 0.0], [0.0, 1e-3], [0.0, 0.0]])
-    _allocate(b_per_amp, np.zeros((9, 2)), unit, np.zeros(3), unit, np.zeros(2), 0.01, ones, ones, 1.0, ones, 1e-9)
+    loops = (np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]), np.array([0.05]), np.array([1.0]),
+             np.array([0], dtype=np.int64))
+    _allocate_at(*loops, np.array([0.0, 0.0, 1.0]), np.concatenate((unit, np.zeros(3), unit)), np.zeros(1), 0.01,
+                 np.ones((3, 1)), 1.0, 1e-9)
     _solve(b_per_amp, np.zeros((3, 2)), unit, np.zeros(3), 1e-3, 1e-9)
     _projection(np.ones((6, 2)), ones, ones)
+    _min_norm_solution(np.array([[1.0, 0.0, 1.0], [0.0, 1.0, 0.0]]), np.ones(2), 1e-9)
 
 
 register_warm_up(__name__)

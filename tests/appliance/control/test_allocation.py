@@ -123,3 +123,20 @@ def test_currents_never_exceed_current_slew_or_power_limits(
     assert 0.0 <= result.scale <= 1.0 + 1e-12
     if result.limited_by != "slew-ramp" and result.scale > 1e-6 and field_mt > 0.0:
         assert _angle_deg(result.achieved_field_T, d) < 0.1
+
+
+def test_qr_minimum_norm_solution_equals_lstsq_also_when_it_hands_over() -> None:
+    """The allocation's QR solve against numpy's SVD-based lstsq: wide full-rank (QR), rank-deficient
+    (a zero row, two parallel rows: lstsq decides) and tall matrices."""
+    from appliance.control.allocation import _min_norm_solution
+
+    rng = np.random.default_rng(5)
+    for case in range(300):
+        a = rng.normal(size=(6, (6, 8, 8, 5)[case % 4])) * np.exp(rng.uniform(-2.0, 2.0, size=(6, 1)))
+        if case % 5 == 1:
+            a[3] = 0.0
+        if case % 5 == 2:
+            a[4] = -3.0 * a[1]
+        y = rng.normal(size=6)
+        expected = np.linalg.lstsq(a, y, rcond=1e-9)[0]
+        assert np.abs(_min_norm_solution(a, y, 1e-9) - expected).max() < 1e-8 * np.abs(expected).max()
