@@ -159,6 +159,7 @@ class Orchestrator:
         # Every compiled kernel (recognition, control) now, while the output is still off: no frame
         # pays for compilation (a first call can take seconds; from the on-disk cache, milliseconds).
         warm_up_all()
+        self._rehearse(pair)
         self.amplifier.add_listener(self._on_amplifier_event)
         self.amplifier.enable()
         self._commanded = np.zeros(self._n)
@@ -318,6 +319,19 @@ class Orchestrator:
         return report
 
     # -- helpers ------------------------------------------------------------------------------------
+    def _rehearse(self, pair: BiplanePair) -> None:
+        """Recognise the start-up pair twice (a detection, then a tracked frame) and forget it. A kernel
+        called with argument types its warm-up did not cover (read-only frames from a grabber, a view of
+        an array) is compiled at its first call, holding the GIL for up to seconds: the amplifier's
+        heartbeat and the grabbers' readers would stall with the loop. This makes that call now."""
+        began = time.perf_counter()
+        t = self.clock()
+        for k in range(2):
+            self.tracker.process(pair.p.image, pair.q.image, frame=pair.number, t=t + k / self.settings.fps)
+        self.tracker.reset()
+        log.debug("start-up pair recognised in %.3f s (compilation of what the warm-ups missed)",
+                  time.perf_counter() - began)
+
     def _notify_safety_events(self) -> None:
         """The supervisor's changes of mode since the last call, to the listeners."""
         for event in self.safety.events[self._safety_seen:]:
