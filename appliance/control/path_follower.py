@@ -187,14 +187,15 @@ class PathFollower:
 
     def nearest(self, point_mm: ArrayLike) -> tuple[float, FloatArray]:
         """(arc length, point) of the nearest path point, near the previous one when known."""
-        p = np.asarray(point_mm, dtype=np.float64).reshape(3)
+        p = np.array(point_mm, dtype=np.float64).reshape(3)
         s, q = _nearest(self.points, self.s, self._tangents, p, self._state[_S_HINT])
         return s, q
 
     def command(self, posture_centroid_mm: ArrayLike, direction: ArrayLike, t_s: float) -> Command:
         """Field and force for this frame from the tracked centroid and axis at time ``t_s``."""
-        p = np.asarray(posture_centroid_mm, dtype=np.float64).reshape(3)
-        axis = np.asarray(direction, dtype=np.float64).reshape(3)
+        # Fresh copies: a read-only or strided array (a view into a posture) would compile the kernel again.
+        p = np.array(posture_centroid_mm, dtype=np.float64).reshape(3)
+        axis = np.array(direction, dtype=np.float64).reshape(3)
         field, force, velocity, nearest, cross_track, progress, done, s = _follow(
             self.points, self.s, self._tangents, self._settings, self._state, p, axis, float(t_s))
         return Command(field, force, cross_track, progress, done, velocity, s, nearest)
