@@ -190,10 +190,20 @@ def weighted_features(blob: Blob, settings: RecognitionSettings | None = None) -
         long_, short = ramps[end], ramps[1 - end]
         if long_ >= settings.head_ramp_ratio * max(short, 1e-6) and long_ - short >= settings.head_min_ramp_px:
             head = end
-    centroid = np.array([cx + blob.window.x0, cy + blob.window.y0])
-    base = Features2D(centroid, np.array([vx, vy]), (l1, l2), np.zeros((2, 2)), blob.pixel_count, None,
+    x0, y0 = cx + blob.window.x0, cy + blob.window.y0
+    # The tips as Features2D.with_head places them, in scalars (one dataclass per view and frame).
+    d0, d1 = (_tip_distance(plus, head == 0), _tip_distance(minus, head == 1))
+    tips = np.array([[x0 + vx * d0, y0 + vy * d0], [x0 - vx * d1, y0 - vy * d1]])
+    return Features2D(np.array([x0, y0]), np.array([vx, vy]), (l1, l2), tips, blob.pixel_count, head,
                       ramps, reach, axis_sigma)
-    return base.with_head(head)
+
+
+def _tip_distance(reach_px: list[float], conical: bool) -> float:
+    """:meth:`Features2D.tip_distance` on one end's reaches listed in the order of ``_LEVELS``."""
+    if conical:
+        cone = (reach_px[1] - reach_px[3]) / (0.8 - 0.5)   # levels 0.25 and 0.64
+        return reach_px[1] + 0.5 * cone
+    return reach_px[2]                                       # level 0.5
 
 
 def features(blob: Blob, settings: RecognitionSettings | None = None) -> Features2D:

@@ -37,8 +37,7 @@ def _select(buf, n, k):  # pragma: no cover - compiled
             a, b = b, a
         if b > c:
             b = c
-            if a > b:
-                b = a
+            b = max(b, a)
         pivot = b
         i, j = lo, hi
         while i <= j:
@@ -70,8 +69,7 @@ def median_inplace(buf, n):  # pragma: no cover - compiled
         return upper
     lower = buf[0]
     for i in range(1, k):
-        if buf[i] > lower:
-            lower = buf[i]
+        lower = max(lower, buf[i])
     return (lower + upper) / 2
 
 
@@ -437,14 +435,14 @@ def _end_stops(smooth, wy0, wx0, ys, xs, n, s_of, s_lo, s_hi, tolerance, fade_st
     or where the slice is wider than the body along its core (1.2 x the median slice width + 2):
     what continues at a steady level or widens is something else, such as a vessel the robot touches.
     ``ys, xs`` (window px) and ``s_of`` (their axial coordinates) list the body's ``n`` pixels."""
-    nbins_core = int(math.floor(s_hi - s_lo)) + 1
+    nbins_core = math.floor(s_hi - s_lo) + 1
     core_width = np.zeros(max(nbins_core, 1) + 1, dtype=np.int64)
     top_bin = -1
     far_hi, far_lo = 0.0, 0.0
     for i in range(n):
         p = s_of[i]
         if p >= s_lo and p <= s_hi:
-            b = int(math.floor(p - s_lo))
+            b = math.floor(p - s_lo)
             core_width[b] += 1
             top_bin = max(top_bin, b)
         far_hi = max(far_hi, p - s_hi)
@@ -461,13 +459,13 @@ def _end_stops(smooth, wy0, wx0, ys, xs, n, s_of, s_lo, s_hi, tolerance, fade_st
         far = far_hi if side == 0 else far_lo
         if not far > 0.0:
             continue
-        nb = int(math.floor(far)) + 1
+        nb = math.floor(far) + 1
         peak = np.full(nb, -np.inf)
         width = np.zeros(nb, dtype=np.int64)
         for i in range(n):
             beyond = sign * (s_of[i] - start)
             if beyond > 0.0:
-                b = int(math.floor(beyond))
+                b = math.floor(beyond)
                 peak[b] = max(peak[b], float(smooth[wy0 + ys[i], wx0 + xs[i]]))
                 width[b] += 1
         stop = nb
@@ -491,9 +489,9 @@ def _fill_values(smooth, wy0, wx0, hh, ww, support, sy0, sy1, sx0, sx1, fill_row
     crossing the robot, only slightly low for a vessel it lies in. ``support`` covers the box
     ``[sy0, sy1) x [sx0, sx1)`` of the window; each line crosses it once (it is convex)."""
     if transpose:
-        n_lines, line_len, l0, l1 = hh, ww, sy0, sy1
+        line_len, l0, l1 = ww, sy0, sy1
     else:
-        n_lines, line_len, l0, l1 = ww, hh, sx0, sx1
+        line_len, l0, l1 = hh, sx0, sx1
     c0, c1 = -1, -1
     for c in range(l0, l1):
         hit = False
@@ -678,7 +676,7 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
     reach = cone_reach * core_len + 3.0  # how far beyond the core a faint cone tip may go
     pad = dilate_px + 1.0
     half_width = t_max + pad + 2.0
-    grow = int(math.ceil(reach + half_width + pad + fill_rows + 2))
+    grow = math.ceil(reach + half_width + pad + fill_rows + 2)
     H, W = a.shape
     wx0, wy0 = max(0, bx + xmin - grow), max(0, by + ymin - grow)
     wx1, wy1 = min(W, bx + xmax + grow + 1), min(H, by + ymax + grow + 1)
@@ -774,8 +772,8 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
         t_ = -lo_t if k % 2 == 0 else hi_t
         gxs[k] = s_ * ax - t_ * ay + ox - wx0
         gys[k] = s_ * ay + t_ * ax + oy - wy0
-    sy0, sy1 = max(int(math.floor(gys.min())) - 1, 0), min(int(math.ceil(gys.max())) + 2, hh)
-    sx0, sx1 = max(int(math.floor(gxs.min())) - 1, 0), min(int(math.ceil(gxs.max())) + 2, ww)
+    sy0, sy1 = max(math.floor(gys.min()) - 1, 0), min(math.ceil(gys.max()) + 2, hh)
+    sx0, sx1 = max(math.floor(gxs.min()) - 1, 0), min(math.ceil(gxs.max()) + 2, ww)
     support = np.zeros((max(sy1 - sy0, 0), max(sx1 - sx0, 0)), dtype=np.uint8)
     edge = False
     for y in range(sy0, sy1):
@@ -966,7 +964,7 @@ def warm_up() -> None:
     coarse = np.full((4, 5), np.float32(math.log(20000.0)))
     a = attenuation_from_coarse(image, 0, h, 0, w, coarse, 8.0, 8.0, table)
     attenuation_from_dense(image, np.full((h, w), np.float32(math.log(20000.0))), table)
-    sigma, smooth, labels, stats, order = candidates(a, GAUSSIAN_5, 6.0, 0.29, 0.125)
+    _, smooth, labels, stats, order = candidates(a, GAUSSIAN_5, 6.0, 0.29, 0.125)
     disk = np.array([1, 2, 2, 2, 1], dtype=np.int64)
     params = np.array([0.25, 0.5, 8, 420, 40.0, 0.7, 2, 3.0, 0.2, 0.29, 3, 7, 4], dtype=np.float64)
     for label in order:

@@ -1,0 +1,101 @@
+"""The compiled kernels of one view's recognition step against the library calls (numpy, OpenCV) whose
+results they must reproduce: any difference here would change a segmentation or its features."""
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from appliance.recognition import LogBackground, Roi, attenuation, noise_sigma
+from appliance.recognition import view_kernels as vk
+
+
+def _reference_sigma(a: np.ndarray) -> float:
+    return 1.4826 * float(np.median(np.abs(np.diff(a, axis=1)))) / math.sqrt(2.0)
+
+
+@pytest.mark.parametrize("shape", [(1, 2), (3, 3), (7, 12), (40, 57), (56, 109)])
+def test_noise_sigma_is_the_median_of_neighbour_differences(shape: tuple[int, int]) -> None:
+    rng = np.random.default_rng(shape[0] * 100 + shape[1])
+    smooth = rng.normal(0.0, 0.02, shape).astype(np.float32)
+    # Quantised values: many equal differences, so the median sits inside a run of ties.
+    ties = (np.round(rng.normal(0.0, 3.0, shape)) / 64).astype(np.float32)
+    for a in (smooth, ties, smooth.astype(np.float64)):
+        assert noise_sigma(a) == _reference_sigma(a)
+    assert noise_sigma(np.zeros(shape, dtype=np.float32)) == 0.0
+
+
+def test_noise_sigma_of_a_single_column_is_unknown() -> None:
+    assert math.isnan(noise_sigma(np.ones((5, 1), dtype=np.float32)))
+
+
+def test_median_matches_numpy_for_odd_and_even_counts() -> None:
+    rng = np.random.default_rng(3)
+    for n in (1, 2, 5, 6, 101, 1000):
+        values = rng.normal(size=n).astype(np.float32)
+        assert vk.median_inplace(values.copy(), n) == np.float32(np.median(values))
+
+
+def test_labelling_equals_opencv_components_with_stats() -> None:
+    rng = np.random.default_rng(4)
+    for trial in range(12):
+        field = cv2.GaussianBlur(rng.normal(size=(48, 64)).astype(np.float32), (0, 0), 1.0 + trial % 3)
+        threshold = np.float32(0.3 * field.max())
+        n, labels, stats = vk.label_above(field, threshold)
+        n_cv, labels_cv, stats_cv, _ = cv2.connectedComponentsWithStats((field > threshold).view(np.uint8),
+                                                                        connectivity=8)
+        assert n == n_cv
+        # The same components (OpenCV numbers them in its own scan order; ours is the raster order of
+        # each component's first pixel), with the same boxes and areas.
+        pairs = np.unique(np.stack([labels.ravel(), labels_cv.ravel()]), axis=1)
+        assert pairs.shape[1] == n and len(np.unique(pairs[0])) == n and len(np.unique(pairs[1])) == n
+        np.testing.assert_array_equal(stats[pairs[0, 1:]], stats_cv[pairs[1, 1:]])   # 0: background
+        firsts = [int(np.flatnonzero(labels.ravel() == k)[0]) for k in range(1, n)]
+        assert firsts == sorted(firsts)
+
+
+@pytest.mark.parametrize("radius", [0, 1, 2, 3, 6, 9])
+def test_run_dilation_equals_opencv_dilation_by_the_ellipse(radius: int) -> None:
+    rng = np.random.default_rng(radius)
+    disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+    spans = ((disk.sum(axis=1) - 1) // 2).astype(np.int64)
+    for density in (0.01, 0.1, 0.5):
+        mask = (rng.random((37, 51)) < density).astype(np.uint8)
+        np.testing.assert_array_equal(vk.dilate_runs(mask, spans), cv2.dilate(mask, disk))
+
+
+def test_gaussian_equals_opencv_with_replicated_borders() -> None:
+    rng = np.random.default_rng(5)
+    for shape in ((3, 4), (20, 33), (56, 109)):
+        a = rng.normal(size=shape).astype(np.float32)
+        expected = cv2.GaussianBlur(a, (5, 5), 1.0, borderType=cv2.BORDER_REPLICATE)
+        np.testing.assert_allclose(vk.gaussian5(a, vk.GAUSSIAN_5), expected, atol=2e-6)
+
+
+def test_attenuation_interpolates_the_coarse_background_like_the_upsampled_image() -> None:
+    rng = np.random.default_rng(6)
+    coarse = rng.normal(9.0, 0.2, (37, 53)).astype(np.float32)
+    bg = LogBackground(coarse, coarse, (150, 213))   # sizes that are not multiples of the factor
+    image = rng.integers(0, 40000, (150, 213)).astype(np.uint16)
+    full = cv2.resize(coarse, (213, 150), interpolation=cv2.INTER_LINEAR)
+    for region in (Roi(0, 0, 213, 150), Roi(100, 5, 213, 40), Roi(0, 140, 3, 150), Roi(99, 77, 100, 78)):
+        sl = region.slices
+        expected = full[sl] - np.log(np.maximum(image[sl].astype(np.float32) - np.float32(1000.0), 1.0))
+        np.testing.assert_allclose(attenuation(image, bg, region, 1000.0), expected, atol=3e-5)
+        # A plain full-resolution log B gives the same, through the dense kernel.
+        np.testing.assert_allclose(attenuation(image, full, region, 1000.0), expected, atol=1e-6)
+    # Images other than 8/16-bit integers take the numpy path, with the same values.
+    as_float = image.astype(np.float32)
+    np.testing.assert_allclose(attenuation(as_float, full, Roi(0, 0, 213, 150), 1000.0),
+                               attenuation(image, full, Roi(0, 0, 213, 150), 1000.0), atol=1e-6)
+
+
+def test_moments_equal_opencv() -> None:
+    rng = np.random.default_rng(7)
+    weights = np.where(rng.random((30, 61)) < 0.4, rng.normal(1.0, 0.5, (30, 61)), 0.0).astype(np.float32)
+    m = cv2.moments(weights)
+    got = vk.moments(weights)
+    expected = (m["m00"], m["m10"], m["m01"], m["mu20"], m["mu02"], m["mu11"])
+    np.testing.assert_allclose(got, expected, rtol=1e-9)
