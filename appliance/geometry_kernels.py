@@ -207,21 +207,21 @@ def symmetric_eigen(M: np.ndarray, values: np.ndarray, vectors: np.ndarray) -> N
     for i in range(n):
         for j in range(n):
             vectors[i, j] = 1.0 if i == j else 0.0
-    for _ in range(60):
-        off = 0.0
-        total = 0.0
-        for i in range(n):
-            for j in range(n):
-                total += M[i, j] * M[i, j]
-                if i != j:
-                    off += M[i, j] * M[i, j]
-        if off <= 1e-36 * total or off == 0.0:
-            break
+    for _ in range(50):
+        rotated = False
         for p in range(n - 1):
             for q in range(p + 1, n):
                 apq = M[p, q]
                 if apq == 0.0:
                     continue
+                # An element too small to change either diagonal entry is zero (Jacobi converges
+                # quadratically, so this is reached in a few sweeps; a relative test on the whole
+                # matrix would stall on rounding).
+                small = 100.0 * abs(apq)
+                if abs(M[p, p]) + small == abs(M[p, p]) and abs(M[q, q]) + small == abs(M[q, q]):
+                    M[p, q] = M[q, p] = 0.0
+                    continue
+                rotated = True
                 theta = (M[q, q] - M[p, p]) / (2.0 * apq)
                 t = (1.0 if theta >= 0 else -1.0) / (abs(theta) + math.sqrt(theta * theta + 1.0))
                 c = 1.0 / math.sqrt(t * t + 1.0)
@@ -238,6 +238,8 @@ def symmetric_eigen(M: np.ndarray, values: np.ndarray, vectors: np.ndarray) -> N
                     vkp, vkq = vectors[k, p], vectors[k, q]
                     vectors[k, p] = c * vkp - s * vkq
                     vectors[k, q] = s * vkp + c * vkq
+        if not rotated:
+            break
     for i in range(n):
         values[i] = M[i, i]
     # Sort ascending (insertion sort on a handful of values), columns along.
@@ -256,13 +258,41 @@ def _camera_depth(G: np.ndarray, o: int, X0: float, X1: float, X2: float) -> flo
 
 
 @kernel
+def _intersect_rays(G: np.ndarray, up: float, vp: float, uq: float, vq: float) -> tuple[float, float, float]:
+    """Where the rays of two ideal pixels on each other's epipolar lines meet: the DLT's exact solution
+    for such a pair (its four equations then have a null vector), at a tenth of the cost. Computed as
+    the midpoint of the rays' closest points, so rounding in the correction does not matter."""
+    o = VIEW_SIZE
+    a0, a1, a2 = ray_direction(G, 0, up, vp)
+    b0, b1, b2 = ray_direction(G, o, uq, vq)
+    w0, w1, w2 = G[_SRC] - G[o + _SRC], G[_SRC + 1] - G[o + _SRC + 1], G[_SRC + 2] - G[o + _SRC + 2]
+    k = a0 * b0 + a1 * b1 + a2 * b2
+    denominator = 1.0 - k * k
+    if not denominator > 1e-15:  # parallel rays: a point at infinity
+        return math.nan, math.nan, math.nan
+    wa = w0 * a0 + w1 * a1 + w2 * a2
+    wb = w0 * b0 + w1 * b1 + w2 * b2
+    s = (k * wb - wa) / denominator  # along p's ray
+    t = (wb - k * wa) / denominator  # along q's ray
+    X0 = 0.5 * (G[_SRC] + s * a0 + G[o + _SRC] + t * b0)
+    X1 = 0.5 * (G[_SRC + 1] + s * a1 + G[o + _SRC + 1] + t * b1)
+    X2 = 0.5 * (G[_SRC + 2] + s * a2 + G[o + _SRC + 2] + t * b2)
+    if _camera_depth(G, 0, X0, X1, X2) <= 0.0 or _camera_depth(G, o, X0, X1, X2) <= 0.0:
+        return math.nan, math.nan, math.nan
+    return X0, X1, X2
+
+
+@kernel
 def triangulate_ideal(G: np.ndarray, up: float, vp: float, uq: float, vq: float, optimal: bool
                       ) -> tuple[float, float, float]:
-    """World point (mm) of a pair of ideal pixels: optionally corrected onto the epipolar constraint, then
-    the linear DLT in normalised coordinates with the world scaled (as :func:`appliance.epipolar.triangulate`);
-    NaN at infinity or at or behind either source."""
+    """World point (mm) of a pair of ideal pixels: optionally corrected onto the epipolar constraint (then the
+    rays meet), else the linear DLT in normalised coordinates with the world scaled (as
+    :func:`appliance.epipolar.triangulate`); NaN at infinity or at or behind either source."""
     if optimal:
         up, vp, uq, vq = optimal_correction(G, up, vp, uq, vq)
+        if not (up == up and uq == uq):  # NaN pixels: no point
+            return math.nan, math.nan, math.nan
+        return _intersect_rays(G, up, vp, uq, vq)
     s = G[SCALE_OFFSET]
     A = np.empty((4, 4))
     row = 0
@@ -284,7 +314,13 @@ def triangulate_ideal(G: np.ndarray, up: float, vp: float, uq: float, vq: float,
             for k in range(4):
                 A[row, k] /= norm
             row += 1
-    M = A.T @ A
+    M = np.empty((4, 4))
+    for i in range(4):
+        for j in range(4):
+            total = 0.0
+            for k in range(4):
+                total += A[k, i] * A[k, j]
+            M[i, j] = total
     values = np.empty(4)
     vectors = np.empty((4, 4))
     symmetric_eigen(M, values, vectors)

@@ -215,13 +215,13 @@ def _reconstruct_weighted(calibration: Calibration, feat_p: Features2D, feat_q: 
     for name, feat in feats.items():
         plus = plus_index[name]
         if head_identified:
-            feat = feat.with_head(plus)
+            feat = _with_head(feat, plus)
         elif cone_end is not None:
             # Tips only: the end whose profile ramps in both views is measured as a cone (apex), the other
             # as a step; the head is still reported as not identified.
             feat = replace(feat.with_head(plus if cone_end == 0 else 1 - plus), head_index=None)
         else:
-            feat = feat.with_head(None)
+            feat = _with_head(feat, None)
         final[name] = feat
         view_tips[name] = feat.tips if plus == 0 else feat.tips[::-1]
     placed = np.empty(kernels.TIPS_SIZE)
@@ -237,6 +237,15 @@ def _reconstruct_weighted(calibration: Calibration, feat_p: Features2D, feat_q: 
                        f"{reprojection or float('nan'):.1f} px off one line, and the views do not both see the head")
     return Reconstruction(centroid, d, tips, head_identified, length, reprojection, pairing, plane_angle, ambiguous,
                           reasons, None, view_tips, final, epipolar_px)
+
+
+def _with_head(feat: Features2D, head_index: int | None) -> Features2D:
+    """``feat.with_head(head_index)``, without rebuilding features that already have that head: tips from
+    the axial profile (``reach``) are a function of the head's end alone, and rebuilding them costs
+    more than the rest of a steady-state frame's reconstruction."""
+    if feat.reach is not None and feat.head_index == head_index:
+        return feat
+    return feat.with_head(head_index)
 
 
 def _front_reasons(values: list[float], pairing: Pairing, plane_angle: float) -> list[str]:
