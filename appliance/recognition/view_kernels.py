@@ -425,6 +425,52 @@ def moments(weights):  # pragma: no cover - compiled
 
 # ------------------------------------------------------------------------------------ one candidate
 @kernel
+def _scanline_fill(allowed, out, seeds_y, seeds_x, n_seeds, ys, xs, n):  # pragma: no cover - compiled
+    """8-connected flood fill of ``allowed`` (0/1) from the seeds, run by run: marks ``out`` and appends
+    the new pixels to ``ys, xs`` after their first ``n``; returns the new count.
+
+    A run is grown left and right in one sequential scan, then the rows above and below are scanned
+    over its span (plus one pixel either side) for runs to fill next: every pixel is read a few
+    times in predictable loops, where a pixel-by-pixel fill tests eight neighbours each."""
+    h, w = allowed.shape
+    # Rows and columns on two stacks: a packed index would cost two integer divisions a pop.
+    stack_y = np.empty(2 * h * w + n_seeds + 2, dtype=np.int64)
+    stack_x = np.empty(2 * h * w + n_seeds + 2, dtype=np.int64)
+    top = 0
+    for i in range(n_seeds):
+        stack_y[top], stack_x[top] = seeds_y[i], seeds_x[i]
+        top += 1
+    while top > 0:
+        top -= 1
+        y, x = stack_y[top], stack_x[top]
+        row, done = allowed[y], out[y]
+        if done[x] or not row[x]:
+            continue
+        x0 = x
+        while x0 > 0 and row[x0 - 1] and not done[x0 - 1]:
+            x0 -= 1
+        x1 = x
+        while x1 < w - 1 and row[x1 + 1] and not done[x1 + 1]:
+            x1 += 1
+        for xx in range(x0, x1 + 1):
+            done[xx] = 1
+            ys[n], xs[n] = y, xx
+            n += 1
+        for ny in (y - 1, y + 1):
+            if ny < 0 or ny >= h:
+                continue
+            nrow, ndone = allowed[ny], out[ny]
+            inside = False
+            for xx in range(max(x0 - 1, 0), min(x1 + 2, w)):
+                free = nrow[xx] != 0 and ndone[xx] == 0
+                if free and not inside:
+                    stack_y[top], stack_x[top] = ny, xx
+                    top += 1
+                inside = free
+    return n
+
+
+@kernel
 def _end_stops(smooth, wy0, wx0, ys, xs, n, s_of, s_lo, s_hi, tolerance, fade_step):  # pragma: no cover
     """How far (px along the axis) the body may extend beyond each end of its core: ``(beyond s_hi,
     beyond s_lo)``, infinite where nothing lies beyond.
@@ -616,31 +662,29 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
     no_scalars = np.zeros(9)
     # The component's peak (its first maximum in raster order) and its core: the part above
     # core_fraction of the peak, 8-connected to it.
+    # (Rows are sliced first throughout: indices from range(0, n) are known non-negative, so the
+    # compiled loops carry no wraparound test and vectorise.)
     peak32, py, px = np.float32(-np.inf), -1, -1
-    for y in range(by, by + bh):
-        for x in range(bx, bx + bw):
-            if labels[y, x] == label and smooth[y, x] > peak32:
-                peak32, py, px = smooth[y, x], y, x
+    for y in range(bh):
+        lrow, srow = labels[by + y, bx:bx + bw], smooth[by + y, bx:bx + bw]
+        for x in range(bw):
+            if lrow[x] == label and srow[x] > peak32:
+                peak32, py, px = srow[x], by + y, bx + x
     peak = float(peak32)
     if peak < min_peak:
         return 0, nothing, empty_w, empty_m, no_scalars
     level32 = np.float32(core_fraction * peak)
+    strong = np.empty((bh, bw), dtype=np.uint8)
+    for y in range(bh):
+        lrow, srow, out_row = labels[by + y, bx:bx + bw], smooth[by + y, bx:bx + bw], strong[y]
+        for x in range(bw):
+            out_row[x] = (lrow[x] == label) & (srow[x] >= level32)  # no branch: vectorised
     seen = np.zeros((bh, bw), dtype=np.uint8)
     cys = np.empty(bh * bw, dtype=np.int64)
     cxs = np.empty(bh * bw, dtype=np.int64)
-    cys[0], cxs[0] = py - by, px - bx
-    seen[py - by, px - bx] = 1
-    n, head = 1, 0
-    while head < n:
-        y, x = cys[head], cxs[head]
-        head += 1
-        for yy in range(max(y - 1, 0), min(y + 2, bh)):
-            for xx in range(max(x - 1, 0), min(x + 2, bw)):
-                if (not seen[yy, xx] and labels[by + yy, bx + xx] == label
-                        and smooth[by + yy, bx + xx] >= level32):
-                    seen[yy, xx] = 1
-                    cys[n], cxs[n] = yy, xx
-                    n += 1
+    seed_y = np.array([py - by])
+    seed_x = np.array([px - bx])
+    n = _scanline_fill(strong, seen, seed_y, seed_x, 1, cys, cxs, 0)
     if n < min_pixels:
         return 0, nothing, empty_w, empty_m, no_scalars
     sx = sy = 0
@@ -709,34 +753,19 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
     level = max(support_sigma * sigma_s, support_fraction * height)
     base32, lvl32 = np.float32(baseline), np.float32(level)
     lo_s, hi_s = s_min - reach, s_max + reach
+    above = np.empty((hh, ww), dtype=np.uint8)
+    for y in range(hh):
+        gy = (wy0 + y) - oy
+        srow, arow = smooth[wy0 + y, wx0:wx1], above[y]
+        for x in range(ww):
+            gx = (wx0 + x) - ox
+            s_, t_ = gx * ax + gy * ay, -gx * ay + gy * ax
+            arow[x] = (((srow[x] - base32) > lvl32) & (abs(t_) <= half_width)  # no branch: vectorised
+                       & (s_ >= lo_s) & (s_ <= hi_s))
     mask = np.zeros((hh, ww), dtype=np.uint8)
     mys = np.empty(hh * ww, dtype=np.int64)
     mxs = np.empty(hh * ww, dtype=np.int64)
-    m = 0
-    for i in range(n):
-        y, x = cys[i], cxs[i]
-        gx, gy = (wx0 + x) - ox, (wy0 + y) - oy
-        s_, t_ = gx * ax + gy * ay, -gx * ay + gy * ax
-        if (smooth[wy0 + y, wx0 + x] - base32) > lvl32 and abs(t_) <= half_width and s_ >= lo_s and s_ <= hi_s:
-            mask[y, x] = 1
-            mys[m], mxs[m] = y, x
-            m += 1
-    head = 0
-    while head < m:
-        y, x = mys[head], mxs[head]
-        head += 1
-        for yy in range(max(y - 1, 0), min(y + 2, hh)):
-            gy = (wy0 + yy) - oy
-            for xx in range(max(x - 1, 0), min(x + 2, ww)):
-                if mask[yy, xx]:
-                    continue
-                gx = (wx0 + xx) - ox
-                s_, t_ = gx * ax + gy * ay, -gx * ay + gy * ax
-                if ((smooth[wy0 + yy, wx0 + xx] - base32) > lvl32 and abs(t_) <= half_width
-                        and s_ >= lo_s and s_ <= hi_s):
-                    mask[yy, xx] = 1
-                    mys[m], mxs[m] = yy, xx
-                    m += 1
+    m = _scanline_fill(above, mask, cys, cxs, n, mys, mxs, 0)
     for i in range(n):  # the core belongs to the body even where it is below the level
         y, x = cys[i], cxs[i]
         if not mask[y, x]:

@@ -99,3 +99,20 @@ def test_moments_equal_opencv() -> None:
     got = vk.moments(weights)
     expected = (m["m00"], m["m10"], m["m01"], m["mu20"], m["mu02"], m["mu11"])
     np.testing.assert_allclose(got, expected, rtol=1e-9)
+
+
+def test_scanline_fill_takes_exactly_the_components_holding_a_seed() -> None:
+    rng = np.random.default_rng(8)
+    for density in (0.3, 0.5, 0.6):
+        allowed = (rng.random((41, 57)) < density).astype(np.uint8)
+        _, labels = cv2.connectedComponents(allowed, connectivity=8)
+        seeds_y, seeds_x = rng.integers(0, 41, 6), rng.integers(0, 57, 6)
+        out = np.zeros_like(allowed)
+        ys = np.empty(allowed.size, dtype=np.int64)
+        xs = np.empty(allowed.size, dtype=np.int64)
+        n = vk._scanline_fill(allowed, out, seeds_y, seeds_x, 6, ys, xs, 0)
+        hit = {int(labels[y, x]) for y, x in zip(seeds_y, seeds_x) if allowed[y, x]}
+        expected = np.isin(labels, sorted(hit)) & (allowed > 0)
+        np.testing.assert_array_equal(out.astype(bool), expected)
+        assert n == int(expected.sum())
+        assert out[ys[:n], xs[:n]].all() and len(set(zip(ys[:n].tolist(), xs[:n].tolist()))) == n
