@@ -12,9 +12,8 @@ cheap and the per-pixel work that numpy would spread over dozens of calls is one
   times cheaper than a logarithm); the ``f = 4`` variant (the default scale) adds whole 64-bit words;
 * :func:`median_abs_step` - the median absolute difference of horizontal neighbours on a row
   subsample (the robust noise estimate), by radix selection instead of a sort;
-* :func:`coarse_components` - threshold, 8-connected components and, per component, its area,
-  bounding box, peak and the bounding box of its strong core, in one flood fill that only visits
-  pixels above the threshold.
+* :func:`coarse_components` - threshold, 8-connected components (unions of row runs) and, per
+  component, its area, bounding box, peak and the bounding box of its strong core.
 
 Kernels take plain arrays and scalars; :mod:`.background` and :mod:`.detection` keep the Python API.
 """
@@ -177,98 +176,122 @@ def median_abs_step(a: np.ndarray, row_step: int) -> float:  # pragma: no cover
 
 
 @kernel
+def _root(parent: np.ndarray, i: int) -> int:  # pragma: no cover
+    """The root of ``i`` in the union-find forest ``parent``, halving the path on the way."""
+    while parent[i] != i:
+        parent[i] = parent[parent[i]]
+        i = parent[i]
+    return i
+
+
+@kernel
 def coarse_components(a: np.ndarray, threshold: float, core_fraction: float,
                       labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
     """8-connected components of ``a > threshold``, labelled 1.. in raster order of their first pixel
-    (as OpenCV labels them) into ``labels`` (zeroed by the caller), and one row of statistics each:
-    area, bounding box ``x0, y0, x1, y1`` (exclusive ends), and the bounding box of the core
-    (pixels at or above ``core_fraction`` of the component's peak); and each component's peak.
-    Row 0 (the background's) is left zero."""
+    into ``labels`` (zeroed by the caller), and one row of statistics each: area, bounding box
+    ``x0, y0, x1, y1`` (exclusive ends), and the bounding box of the core (pixels at or above
+    ``core_fraction`` of the component's peak); and each component's peak. Row 0 (the background's)
+    is left zero.
+
+    The components are unions of row runs (a run joins those of the row above that it touches,
+    diagonals included), so the connectivity work is per run, not per pixel with eight neighbours; a
+    contrast-filled vessel above the threshold is a few hundred runs of thousands of pixels.
+    """
     h, w = a.shape
-    stack = np.empty(min(h * w, 4096), dtype=np.int32)
-    stats = np.zeros((64, STAT_COLUMNS), dtype=np.int64)
-    peaks = np.zeros(64, dtype=np.float32)
-    n = 1
-    for y0 in range(h):
-        line = a[y0]
+    # Room for the most runs there can be (every other pixel): growing the arrays inside the loop
+    # would make the compiled loop several times slower even when it never grows.
+    cap = h * ((w + 1) // 2)
+    run_y = np.empty(cap, dtype=np.int32)
+    run_x0 = np.empty(cap, dtype=np.int32)
+    run_x1 = np.empty(cap, dtype=np.int32)
+    parent = np.empty(cap, dtype=np.int32)
+    nr = 0
+    above_start = above_end = 0   # the previous row's runs
+    for y in range(h):
+        line = a[y]
         # Most rows hold nothing above the threshold: a branch-free count tells (vectorised; a float
         # maximum is not, without fastmath).
         hits = 0
         for x in range(w):
             hits += line[x] > threshold
-        if hits == 0:
-            continue
-        for x0 in range(w):
-            if labels[y0, x0] != 0 or not line[x0] > threshold:
+        start = nr
+        x = 0
+        while hits > 0 and x < w:
+            if not line[x] > threshold:
+                x += 1
                 continue
-            if n == stats.shape[0]:
-                bigger = np.zeros((2 * n, STAT_COLUMNS), dtype=np.int64)
-                bigger[:n] = stats
-                stats = bigger
-                more = np.zeros(2 * n, dtype=np.float32)
-                more[:n] = peaks
-                peaks = more
-            labels[y0, x0] = n
-            top = 0
-            stack[top] = y0 * w + x0
-            top += 1
-            area = 0
-            bx0, by0, bx1, by1 = x0, y0, x0, y0
-            peak = a[y0, x0]
-            # The pixels of the component are pushed once each; the stack's first `area` entries end
-            # up holding all of them (popped entries are never overwritten), for the core's pass.
-            head = 0
-            while head < top:
-                p = stack[head]
-                head += 1
-                y = p // w
-                x = p - y * w
-                area += 1
-                v = a[y, x]
-                peak = max(peak, v)
-                bx0 = min(bx0, x)
-                bx1 = max(bx1, x)
-                by1 = max(by1, y)
-                for dy in range(-1, 2):
-                    yy = y + dy
-                    if yy < 0 or yy >= h:
-                        continue
-                    for dx in range(-1, 2):
-                        xx = x + dx
-                        if xx < 0 or xx >= w or labels[yy, xx] != 0:
-                            continue
-                        if a[yy, xx] > threshold:
-                            labels[yy, xx] = n
-                            if top == stack.shape[0]:
-                                longer = np.empty(2 * top, dtype=np.int32)
-                                longer[:top] = stack
-                                stack = longer
-                            stack[top] = yy * w + xx
-                            top += 1
-            level = core_fraction * peak
-            cx0, cy0, cx1, cy1 = w, h, -1, -1
-            for k in range(top):
-                p = stack[k]
-                y = p // w
-                x = p - y * w
-                if a[y, x] >= level:
-                    cx0 = min(cx0, x)
-                    cx1 = max(cx1, x)
-                    cy0 = min(cy0, y)
-                    cy1 = max(cy1, y)
-            row = stats[n]
-            row[STAT_AREA] = area
-            row[STAT_X0] = bx0
-            row[STAT_Y0] = by0
-            row[STAT_X1] = bx1 + 1
-            row[STAT_Y1] = by1 + 1
-            row[STAT_CORE_X0] = cx0
-            row[STAT_CORE_Y0] = cy0
-            row[STAT_CORE_X1] = cx1 + 1
-            row[STAT_CORE_Y1] = cy1 + 1
-            peaks[n] = peak
+            x0 = x
+            while x < w and line[x] > threshold:
+                x += 1
+            hits -= x - x0
+            run_y[nr] = y
+            run_x0[nr] = x0
+            run_x1[nr] = x
+            parent[nr] = nr
+            nr += 1
+        # Join the runs of the row above that touch (their pixels within one column of this run's);
+        # the smaller index stays the root, so a component's root is its first run in raster order.
+        j = above_start
+        for i in range(start, nr):
+            while j < above_end and run_x1[j] < run_x0[i]:
+                j += 1
+            k = j
+            while k < above_end and run_x0[k] <= run_x1[i]:
+                ri, rk = _root(parent, i), _root(parent, k)
+                if ri < rk:
+                    parent[rk] = ri
+                elif rk < ri:
+                    parent[ri] = rk
+                k += 1
+        above_start, above_end = start, nr
+    label_of = np.empty(nr, dtype=np.int64)
+    n = 1
+    for i in range(nr):
+        r = _root(parent, i)
+        if r == i:
+            label_of[i] = n
             n += 1
-    return stats[:n], peaks[:n]
+        else:
+            label_of[i] = label_of[r]
+    stats = np.zeros((n, STAT_COLUMNS), dtype=np.int64)
+    peaks = np.zeros(n, dtype=np.float32)
+    for label in range(1, n):
+        stats[label, STAT_X0] = w
+        stats[label, STAT_Y0] = h
+        stats[label, STAT_CORE_X0] = w
+        stats[label, STAT_CORE_Y0] = h
+        peaks[label] = -np.inf
+    for i in range(nr):
+        label, y, x0, x1 = label_of[i], run_y[i], run_x0[i], run_x1[i]
+        row = stats[label]
+        row[STAT_AREA] += x1 - x0
+        row[STAT_X0] = min(row[STAT_X0], x0)
+        row[STAT_X1] = max(row[STAT_X1], x1)
+        row[STAT_Y0] = min(row[STAT_Y0], y)
+        row[STAT_Y1] = y + 1
+        peak = peaks[label]
+        line = a[y]
+        for x in range(x0, x1):
+            peak = max(peak, line[x])
+            labels[y, x] = label
+        peaks[label] = peak
+    for i in range(nr):
+        label, y, x0, x1 = label_of[i], run_y[i], run_x0[i], run_x1[i]
+        level = core_fraction * peaks[label]
+        line = a[y]
+        first, last = -1, -1
+        for x in range(x0, x1):
+            if line[x] >= level:
+                last = x
+                if first < 0:
+                    first = x
+        if first >= 0:
+            row = stats[label]
+            row[STAT_CORE_X0] = min(row[STAT_CORE_X0], first)
+            row[STAT_CORE_X1] = max(row[STAT_CORE_X1], last + 1)
+            row[STAT_CORE_Y0] = min(row[STAT_CORE_Y0], y)
+            row[STAT_CORE_Y1] = max(row[STAT_CORE_Y1], y + 1)
+    return stats, peaks
 
 
 def warm_up() -> None:

@@ -48,8 +48,8 @@ def coarse_windows(background: LogBackground, settings: RecognitionSettings) -> 
     """The full-resolution windows around the coarse image's candidates, largest component first.
 
     The threshold, the components, their peaks and the bounding boxes of their cores come from one
-    compiled pass (:func:`~.background_kernels.coarse_components`) that visits only the pixels above the
-    threshold; Python sees one row of statistics per component.
+    compiled kernel (:func:`~.background_kernels.coarse_components`); Python sees one row of
+    statistics per component.
     """
     a = background.coarse_attenuation
     # The robust noise from neighbour differences (edges are too few to matter) on every fourth row:

@@ -111,12 +111,17 @@ def test_coarse_components_match_opencv_and_the_core_boxes() -> None:
         assert tuple(box) == (xs.min(), ys.min(), xs.max() + 1, ys.max() + 1)
 
 
-def test_coarse_components_of_nothing_and_of_everything() -> None:
+def test_coarse_components_of_nothing_of_everything_and_of_a_checkerboard() -> None:
     a = np.zeros((30, 40), np.float32)
     stats, peaks = kernels.coarse_components(a, 0.5, 0.5, np.zeros(a.shape, np.int32))
     assert len(stats) == 1 and len(peaks) == 1
-    a[:] = 1.0   # one component filling the image: the flood fill's stack grows past its first size
-    a = np.ascontiguousarray(np.tile(a, (3, 3)))
+    a[:] = 1.0   # one component filling the image
     labels = np.zeros(a.shape, np.int32)
     stats, peaks = kernels.coarse_components(a, 0.5, 0.5, labels)
     assert len(stats) == 2 and stats[1, kernels.STAT_AREA] == a.size and (labels == 1).all()
+    # The most runs there can be, each pixel its own run, all joined diagonally.
+    board = (np.indices((31, 40)).sum(axis=0) % 2).astype(np.float32)
+    labels = np.zeros(board.shape, np.int32)
+    stats, peaks = kernels.coarse_components(board, 0.5, 0.5, labels)
+    assert len(stats) == 2 and stats[1, kernels.STAT_AREA] == board.sum() and (labels == board).all()
+    assert tuple(stats[1, kernels.STAT_X0:kernels.STAT_Y1 + 1]) == (0, 0, 40, 31)
