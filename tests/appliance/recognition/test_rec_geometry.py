@@ -162,3 +162,32 @@ def test_declutter_puts_the_centroid_on_the_clean_ray_in_the_cluttered_axis_plan
     # Both views clean, or both cluttered: nothing to place by.
     both = {"p": SimpleNamespace(clutter=0.5), "q": SimpleNamespace(clutter=0.5)}
     assert declutter(calibration, rec, both, SETTINGS).centroid is rec.centroid
+
+
+def test_reconstruction_through_distortion() -> None:
+    # The compiled path undistorts every pixel it uses: with image-intensifier distortion the exact
+    # projections still give the segment back, on the numpy definitions' axis planes and tip rays.
+    from appliance.recognition.reconstruction import axis_plane, ray_line_parameters
+
+    p = View.look_at("p", (-500.0, 0.0, 30.0), (0, 0, 0), focal_px=2500.0, image_size=(512, 480),
+                     dist=(-0.2, 0.05, 0.001, -0.002, 0.0))
+    q = View.look_at("q", (0.0, -500.0, -20.0), (0, 0, 0), focal_px=2300.0, image_size=(512, 480),
+                     dist=(0.1, -0.02, 0.0, 0.001, 0.0))
+    calibration = Calibration.from_views(p, q)
+    c, d, head, tail = _segment((9.0, 7.0, -6.0), (0.3, 0.8, -0.5))
+    fp = _features(calibration.p, head, tail, c)
+    fq = _features(calibration.q, head, tail, c, swap=True)
+    rec = reconstruct(calibration, calibration.F, fp, fq, SETTINGS)
+    assert not rec.ambiguous and rec.head_identified and rec.direction is not None and rec.tips is not None
+    assert float(rec.direction @ d) == pytest.approx(1.0, abs=1e-8)
+    assert rec.tips[0] == pytest.approx(head, abs=0.05) and rec.tips[1] == pytest.approx(tail, abs=0.05)
+    assert rec.reprojection_px is not None and rec.reprojection_px < 0.2  # the perspective correction's shift
+    assert rec.centroid_epipolar_px is not None and rec.centroid_epipolar_px < 1e-6
+    # The axis is the intersection of the two (numpy) axis planes.
+    n_p, n_q = axis_plane(calibration.p, fp)[:3], axis_plane(calibration.q, fq)[:3]
+    assert abs(float(rec.direction @ n_p)) < 1e-6 and abs(float(rec.direction @ n_q)) < 1e-6
+    # Each end is where the views' tip rays come closest to the axis (sin^2-weighted, numpy definition).
+    b, w = zip(*(ray_line_parameters(view, tips, rec.centroid, rec.direction)
+                 for view, tips in ((calibration.p, rec.view_tips["p"]), (calibration.q, rec.view_tips["q"]))))
+    b_plus = (b[0][0] * w[0][0] + b[1][0] * w[1][0]) / (w[0][0] + w[1][0])
+    assert rec.tips[0] == pytest.approx(rec.centroid + b_plus * rec.direction, abs=1e-9)
