@@ -299,8 +299,12 @@ def warm_up() -> None:
     image = np.full((8, 8), 1000, dtype=np.uint16)
     table = np.zeros(65536, dtype=np.float32)
     small = np.zeros((2, 2), dtype=np.float32)
-    block_mean_log(image, 4, table, small)
-    block_mean_log_4(image.view(np.uint64), table, small)
+    # Frames may arrive read-only (a grabber's or a recording's buffer): another signature each.
+    frozen = image.copy()
+    frozen.flags.writeable = False
+    for frame in (image, frozen):
+        block_mean_log(frame, 4, table, small)
+        block_mean_log_4(frame.view(np.uint64), table, small)
     median_abs_step(small, 2)
     coarse_components(small, 0.5, 0.5, np.zeros((2, 2), dtype=np.int32))
 

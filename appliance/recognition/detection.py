@@ -51,7 +51,8 @@ def coarse_windows(background: LogBackground, settings: RecognitionSettings) -> 
     compiled kernel (:func:`~.background_kernels.coarse_components`); Python sees one row of
     statistics per component.
     """
-    a = background.coarse_attenuation
+    # (float32 C-contiguous, the kernels' compiled signature, whoever built the background.)
+    a = np.ascontiguousarray(background.coarse_attenuation, dtype=np.float32)
     # The robust noise from neighbour differences (edges are too few to matter) on every fourth row:
     # still some 16000 differences (1 % standard error) on the 1024 px detector's coarse grid.
     sigma = 1.4826 * background_kernels.median_abs_step(a, 4) / math.sqrt(2.0)

@@ -125,3 +125,17 @@ def test_coarse_components_of_nothing_of_everything_and_of_a_checkerboard() -> N
     stats, peaks = kernels.coarse_components(board, 0.5, 0.5, labels)
     assert len(stats) == 2 and stats[1, kernels.STAT_AREA] == board.sum() and (labels == board).all()
     assert tuple(stats[1, kernels.STAT_X0:kernels.STAT_Y1 + 1]) == (0, 0, 40, 31)
+
+
+def test_a_read_only_frame_compiles_nothing_after_the_warm_up() -> None:
+    from appliance.recognition import RecognitionSettings, detect, log_background
+
+    kernels.warm_up()
+    names = ("block_mean_log", "block_mean_log_4", "median_abs_step", "coarse_components")
+    compiled = {name: len(getattr(kernels, name).signatures) for name in names}
+    image = np.random.default_rng(3).normal(30000, 60, (256, 256)).astype(np.uint16)
+    image[100:108, 60:160] = 9000
+    image.flags.writeable = False   # a grabber's or a recording's buffer
+    blobs = detect(image, log_background(image, 48, 1000.0), RecognitionSettings(dark_level=1000.0))
+    assert len(blobs) == 1
+    assert {name: len(getattr(kernels, name).signatures) for name in names} == compiled
