@@ -202,8 +202,9 @@ def _reconstruct_weighted(calibration: Calibration, feat_p: Features2D, feat_q: 
     head_identified = bool(votes) and all(v[1] == votes[0][1] for v in votes)
     if votes and not head_identified:
         reasons.append("the two views disagree on which end is the head")
-    if (head_identified and not votes[0][1]) or (not head_identified and previous is not None
-                                                  and float(d @ previous) < 0):
+    flipped = (head_identified and not votes[0][1]) or (not head_identified and previous is not None
+                                                         and float(d @ previous) < 0)
+    if flipped:
         d = -d
         plus_index = {k: 1 - v for k, v in plus_index.items()}
     # Re-estimate each view's tips with the head's (conical) end model where the head is known, then
@@ -224,9 +225,15 @@ def _reconstruct_weighted(calibration: Calibration, feat_p: Features2D, feat_q: 
             feat = _with_head(feat, None)
         final[name] = feat
         view_tips[name] = feat.tips if plus == 0 else feat.tips[::-1]
-    placed = np.empty(kernels.TIPS_SIZE)
-    kernels.place_tips(G, centroid, d, view_tips["p"], view_tips["q"], feat_p.centroid, feat_q.centroid, placed)
-    tips = placed[kernels.TIPS_POINTS:kernels.TIPS_POINTS + 6].reshape(2, 3)
+    if final["p"] is feat_p and final["q"] is feat_q:
+        # The tips as measured: the front placed them already (for -d, the same ends in the other order).
+        placed = out[kernels.OUT_PLACED:kernels.OUT_PLACED + kernels.TIPS_SIZE]
+        tips = placed[kernels.TIPS_POINTS:kernels.TIPS_POINTS + 6].reshape(2, 3)
+        tips = tips[::-1].copy() if flipped else tips.copy()
+    else:
+        placed = np.empty(kernels.TIPS_SIZE)
+        kernels.place_tips(G, centroid, d, view_tips["p"], view_tips["q"], feat_p.centroid, feat_q.centroid, placed)
+        tips = placed[kernels.TIPS_POINTS:kernels.TIPS_POINTS + 6].reshape(2, 3)
     length, reproj = placed[kernels.TIPS_LENGTH:kernels.TIPS_REPROJECTION + 1].tolist()
     reprojection = reproj if math.isfinite(reproj) else None
     if head_identified and doubtful and (reprojection is None or reprojection > s.head_doubt_reprojection_px):

@@ -9,7 +9,8 @@ Python objects (the features' head models, the reasons given to the operator) an
   epipolar test, the two axis planes, the choice of pairing, the axis fused from planes and tips,
   the perspective-corrected centroid, and per view which 2D tip is the ``+d`` end;
 * :func:`place_tips` - both ends placed on the 3D axis from the views' (re-estimated) tips, the
-  length and the reprojection error.
+  length and the reprojection error. :func:`weighted_front` already does it for the tips as measured,
+  which is what a steady-state frame keeps (its features come with the head the views agree on).
 
 Outputs go into a float array whose layout is given by the ``OUT_*`` / ``TIPS_*`` offsets.
 """
@@ -67,7 +68,8 @@ OUT_SIDE = 32  # 2: per view, |ray x direction| (how side-on the view sees the a
 OUT_CANDIDATES = 34  # 6: unit directions of pairings A and B
 OUT_AMBIGUOUS = 40
 OUT_ENDS_IN_DOUBT = 41
-OUT_SIZE = 42
+OUT_PLACED = 42  # TIPS_SIZE: place_tips' output for the views' tips as measured, +d end first
+OUT_SIZE = 50
 
 # Layout of place_tips' output.
 TIPS_POINTS = 0  # 6: the +d end, then the -d end
@@ -325,35 +327,36 @@ def weighted_front(G: np.ndarray, cp: np.ndarray, axp: np.ndarray, tp: np.ndarra
         r0, r1, r2 = r0 / z, r1 / z, r2 / z
         y0, y1, y2 = r1 * d[2] - r2 * d[1], r2 * d[0] - r0 * d[2], r0 * d[1] - r1 * d[0]
         out[OUT_SIDE + view] = math.sqrt(y0 * y0 + y1 * y1 + y2 * y2)
+    _place(G, centre, d, tp, int(out[OUT_PLUS]), tq, int(out[OUT_PLUS + 1]), cp, cq, out, OUT_PLACED)
     return STATUS_OK
 
 
 @kernel
-def place_tips(G: np.ndarray, c: np.ndarray, d: np.ndarray, tp: np.ndarray, tq: np.ndarray, cp: np.ndarray,
-               cq: np.ndarray, out: np.ndarray) -> None:
-    """Both ends on the 3D line ``c + b d`` from each view's tips (row 0: the +d end), weighted by ``sin^2`` of
-    the ray-line angle; the length; the RMS reprojection error of centroid and ends over both views."""
+def _place(G: np.ndarray, c: np.ndarray, d: np.ndarray, tp: np.ndarray, plus_p: int, tq: np.ndarray, plus_q: int,
+           cp: np.ndarray, cq: np.ndarray, out: np.ndarray, at: int) -> None:
+    """:func:`place_tips` with each view's +d tip given by its index (``plus_*``), into ``out[at:]``."""
     sums0 = sums1 = weights0 = weights1 = 0.0
     for view in range(2):
         o = view * VIEW_SIZE
         tips = tp if view == 0 else tq
-        b, w = _ray_line_b(G, o, tips[0, 0], tips[0, 1], c, d)
+        plus = plus_p if view == 0 else plus_q
+        b, w = _ray_line_b(G, o, tips[plus, 0], tips[plus, 1], c, d)
         sums0 += b * w
         weights0 += w
-        b, w = _ray_line_b(G, o, tips[1, 0], tips[1, 1], c, d)
+        b, w = _ray_line_b(G, o, tips[1 - plus, 0], tips[1 - plus, 1], c, d)
         sums1 += b * w
         weights1 += w
     b_plus, b_minus = sums0 / weights0, sums1 / weights1
     for i in range(3):
-        out[TIPS_POINTS + i] = c[i] + b_plus * d[i]
-        out[TIPS_POINTS + 3 + i] = c[i] + b_minus * d[i]
-    out[TIPS_LENGTH] = b_plus - b_minus
+        out[at + TIPS_POINTS + i] = c[i] + b_plus * d[i]
+        out[at + TIPS_POINTS + 3 + i] = c[i] + b_minus * d[i]
+    out[at + TIPS_LENGTH] = b_plus - b_minus
     total = 0.0
     for point in range(3):
         if point == 0:
             X0, X1, X2 = c[0], c[1], c[2]
         else:
-            a = TIPS_POINTS + 3 * (point - 1)
+            a = at + TIPS_POINTS + 3 * (point - 1)
             X0, X1, X2 = out[a], out[a + 1], out[a + 2]
         for view in range(2):
             o = view * VIEW_SIZE
@@ -362,9 +365,19 @@ def place_tips(G: np.ndarray, c: np.ndarray, d: np.ndarray, tp: np.ndarray, tq: 
                 mu, mv = (cp[0], cp[1]) if view == 0 else (cq[0], cq[1])
             else:
                 tips = tp if view == 0 else tq
-                mu, mv = tips[point - 1, 0], tips[point - 1, 1]
+                plus = plus_p if view == 0 else plus_q
+                row = plus if point == 1 else 1 - plus
+                mu, mv = tips[row, 0], tips[row, 1]
             total += ((u - mu) ** 2 + (v - mv) ** 2) / 2.0
-    out[TIPS_REPROJECTION] = math.sqrt(total / 3.0)
+    out[at + TIPS_REPROJECTION] = math.sqrt(total / 3.0)
+
+
+@kernel
+def place_tips(G: np.ndarray, c: np.ndarray, d: np.ndarray, tp: np.ndarray, tq: np.ndarray, cp: np.ndarray,
+               cq: np.ndarray, out: np.ndarray) -> None:
+    """Both ends on the 3D line ``c + b d`` from each view's tips (row 0: the +d end), weighted by ``sin^2`` of
+    the ray-line angle; the length; the RMS reprojection error of centroid and ends over both views."""
+    _place(G, c, d, tp, 0, tq, 0, cp, cq, out, 0)
 
 
 def warm_up() -> None:
