@@ -3,6 +3,8 @@
 The detector records ``I = I0(u, v) exp(-integral of mu)`` with a non-uniform open field ``I0`` (heel
 effect, vignetting). Its estimate ``B`` is a grey closing (a max filter then a min filter, wider than
 any robot) of an area-downsampled frame, which removes dark objects and keeps the smooth field.
+The frame is read once, by a compiled block mean (:mod:`.background_kernels`); the closing and its
+blur run on a grid coarser still, so a cold frame costs little more than that read (issue 8).
 
 Only the downsampled estimate is stored. A full-resolution window of ``log B`` is interpolated when
 a region of the image is examined, with the same bilinear mapping a full upsampling would use, so a
@@ -99,6 +101,7 @@ _LOG_TABLES: dict[float, np.ndarray] = {}
 
 
 def _log_table(dark_level: float) -> np.ndarray:
+    """``log(max(level - dark_level, 1))`` for every 16-bit gray level (float32), built once per dark level."""
     table = _LOG_TABLES.get(dark_level)
     if table is None:
         if len(_LOG_TABLES) >= 8:
