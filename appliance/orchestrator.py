@@ -160,6 +160,10 @@ class Orchestrator:
         # pays for compilation (a first call can take seconds; from the on-disk cache, milliseconds).
         warm_up_all()
         self._rehearse(pair)
+        # A pair that came in during the start-up is stale now: the first step waits for a fresh one
+        # (latest-pair mode only; a replay in all-frames mode keeps every pair).
+        if self.frames.pairer.mode == "latest" and self.frames.pairer.ready:
+            self.frames.next_pair(0.0)
         self.amplifier.add_listener(self._on_amplifier_event)
         self.amplifier.enable()
         self._commanded = np.zeros(self._n)
