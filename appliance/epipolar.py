@@ -15,7 +15,6 @@ candidate checks call it every frame on a handful of points.
 from __future__ import annotations
 
 import functools
-import logging
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -24,8 +23,6 @@ from appliance import geometry_kernels
 
 if TYPE_CHECKING:
     from appliance.geometry import View
-
-log = logging.getLogger(__name__)
 
 
 def as_points(values: Any, dim: int, what: str) -> np.ndarray:
