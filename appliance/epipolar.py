@@ -113,7 +113,7 @@ def optimal_correction(p: View, q: View, ideal_p: Any, ideal_q: Any) -> tuple[np
     """Hartley-Sturm optimal correction of ideal pixel pairs (N,2), (N,2): the smallest squared pixel move
     onto ``x_q^T F x_p = 0``. Pairs it cannot handle keep their pixels."""
     a, b = _pair(ideal_p, ideal_q)
-    moved = geometry_kernels.correct_points(packed_views(p, q), a, b)
+    moved = geometry_kernels.correct_points(packed_views(p, q), np.ascontiguousarray(a), np.ascontiguousarray(b))
     return moved[:, :2], moved[:, 2:]
 
 
@@ -127,7 +127,9 @@ def triangulate(p: View, q: View, uv_p: Any, uv_q: Any, *, optimal: bool = True)
     infinity are NaN.
     """
     a, b = _pair(uv_p, uv_q)
-    return geometry_kernels.triangulate_points(packed_views(p, q), a, b, bool(optimal))
+    # Contiguous arrays: the layout the kernel was compiled for at warm-up.
+    return geometry_kernels.triangulate_points(packed_views(p, q), np.ascontiguousarray(a), np.ascontiguousarray(b),
+                                               bool(optimal))
 
 
 def reprojection_error_px(p: View, q: View, X: Any, uv_p: Any, uv_q: Any) -> np.ndarray:

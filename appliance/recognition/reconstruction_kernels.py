@@ -373,11 +373,13 @@ def _place(G: np.ndarray, c: np.ndarray, d: np.ndarray, tp: np.ndarray, plus_p: 
 
 
 @kernel
-def place_tips(G: np.ndarray, c: np.ndarray, d: np.ndarray, tp: np.ndarray, tq: np.ndarray, cp: np.ndarray,
-               cq: np.ndarray, out: np.ndarray) -> None:
-    """Both ends on the 3D line ``c + b d`` from each view's tips (row 0: the +d end), weighted by ``sin^2`` of
-    the ray-line angle; the length; the RMS reprojection error of centroid and ends over both views."""
-    _place(G, c, d, tp, 0, tq, 0, cp, cq, out, 0)
+def place_tips(G: np.ndarray, c: np.ndarray, d: np.ndarray, tp: np.ndarray, plus_p: int, tq: np.ndarray, plus_q: int,
+               cp: np.ndarray, cq: np.ndarray, out: np.ndarray) -> None:
+    """Both ends on the 3D line ``c + b d`` from each view's tips (``tips[plus]`` at the +d end), weighted by
+    ``sin^2`` of the ray-line angle; the length; the RMS reprojection error of centroid and ends over both
+    views. (The +d tip goes by index so that no reversed, non-contiguous view of the tips is passed: a new
+    array layout would compile a new variant at the first frame that needs it.)"""
+    _place(G, c, d, tp, plus_p, tq, plus_q, cp, cq, out, 0)
 
 
 def warm_up() -> None:
@@ -394,7 +396,7 @@ def warm_up() -> None:
     out = np.empty(OUT_SIZE)
     weighted_front(G, c, axis, tips, c, axis, tips, 10.0, 1.0, 0.01, -1, 10.0, 1.0, math.nan, 0, 0.0, 0.0, 1.0, True,
                    3.0, 4.0, 12.0, 1.3, 0.001, 0.7, 0.25, out)
-    place_tips(G, np.zeros(3), np.array([1.0, 0.0, 0.0]), tips, tips, c, c, np.empty(TIPS_SIZE))
+    place_tips(G, np.zeros(3), np.array([1.0, 0.0, 0.0]), tips, 0, tips, 1, c, c, np.empty(TIPS_SIZE))
 
 
 register_warm_up(__name__)
