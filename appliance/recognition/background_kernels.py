@@ -188,7 +188,8 @@ def _root(parent: np.ndarray, i: int) -> int:  # pragma: no cover
 def coarse_components(a: np.ndarray, threshold: float, core_fraction: float,
                       labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
     """8-connected components of ``a > threshold``, labelled 1.. in raster order of their first pixel
-    into ``labels`` (zeroed by the caller), and one row of statistics each: area, bounding box
+    into ``labels`` (zeroed by the caller, shaped like ``a``; an empty array if the labels are not
+    wanted), and one row of statistics each: area, bounding box
     ``x0, y0, x1, y1`` (exclusive ends), and the bounding box of the core (pixels at or above
     ``core_fraction`` of the component's peak); and each component's peak. Row 0 (the background's)
     is left zero.
@@ -198,9 +199,18 @@ def coarse_components(a: np.ndarray, threshold: float, core_fraction: float,
     contrast-filled vessel above the threshold is a few hundred runs of thousands of pixels.
     """
     h, w = a.shape
-    # Room for the most runs there can be (every other pixel): growing the arrays inside the loop
-    # would make the compiled loop several times slower even when it never grows.
-    cap = h * ((w + 1) // 2)
+    # Pixels above the threshold per row (a branch-free count, vectorised; a float maximum is not,
+    # without fastmath): most rows have none, and their total bounds the number of runs, so the run
+    # arrays are sized once (growing them inside the loop would make it several times slower even
+    # when it never grows) and small (a worst-case size would cost a fresh mapping every call).
+    row_hits = np.zeros(h, dtype=np.int64)
+    for y in range(h):
+        line = a[y]
+        hits = 0
+        for x in range(w):
+            hits += line[x] > threshold
+        row_hits[y] = hits
+    cap = max(1, int(row_hits.sum()))
     run_y = np.empty(cap, dtype=np.int32)
     run_x0 = np.empty(cap, dtype=np.int32)
     run_x1 = np.empty(cap, dtype=np.int32)
@@ -209,11 +219,7 @@ def coarse_components(a: np.ndarray, threshold: float, core_fraction: float,
     above_start = above_end = 0   # the previous row's runs
     for y in range(h):
         line = a[y]
-        # Most rows hold nothing above the threshold: a branch-free count tells (vectorised; a float
-        # maximum is not, without fastmath).
-        hits = 0
-        for x in range(w):
-            hits += line[x] > threshold
+        hits = row_hits[y]
         start = nr
         x = 0
         while hits > 0 and x < w:
@@ -244,6 +250,7 @@ def coarse_components(a: np.ndarray, threshold: float, core_fraction: float,
                     parent[ri] = rk
                 k += 1
         above_start, above_end = start, nr
+    with_labels = labels.shape[0] == h and labels.shape[1] == w
     label_of = np.empty(nr, dtype=np.int64)
     n = 1
     for i in range(nr):
@@ -273,7 +280,8 @@ def coarse_components(a: np.ndarray, threshold: float, core_fraction: float,
         line = a[y]
         for x in range(x0, x1):
             peak = max(peak, line[x])
-            labels[y, x] = label
+        if with_labels:
+            labels[y, x0:x1] = label
         peaks[label] = peak
     for i in range(nr):
         label, y, x0, x1 = label_of[i], run_y[i], run_x0[i], run_x1[i]
@@ -307,6 +315,7 @@ def warm_up() -> None:
         block_mean_log_4(frame.view(np.uint64), table, small)
     median_abs_step(small, 2)
     coarse_components(small, 0.5, 0.5, np.zeros((2, 2), dtype=np.int32))
+    coarse_components(small, 0.5, 0.5, np.zeros((0, 0), dtype=np.int32))
 
 
 register_warm_up(__name__)

@@ -22,6 +22,9 @@ from appliance.recognition.segmentation import (
 )
 from appliance.recognition.settings import RecognitionSettings
 
+#: Passed to :func:`~.background_kernels.coarse_components` when the label image is not wanted.
+_NO_LABELS = np.zeros((0, 0), dtype=np.int32)
+
 
 def detect(image: np.ndarray, background: LogBackground, settings: RecognitionSettings | None = None) -> list[Blob]:
     """Robot candidates anywhere in the image, strongest first, without a full-resolution pass.
@@ -62,8 +65,8 @@ def coarse_windows(background: LogBackground, settings: RecognitionSettings) -> 
     # thin robot's peak is diluted by the averaging (hence half the full-resolution floor).
     floor = 0.5 * settings.min_peak_attenuation
     threshold = max(settings.detect_sigma * sigma, settings.core_fraction * floor)
-    labels = np.zeros(a.shape, dtype=np.int32)
-    stats, peaks = background_kernels.coarse_components(a, threshold, settings.core_fraction, labels)
+    stats, peaks = background_kernels.coarse_components(a, threshold, settings.core_fraction, _NO_LABELS)
+    labels: np.ndarray | None = None
     order = np.argsort(-stats[1:, background_kernels.STAT_AREA], kind="stable")[:MAX_CANDIDATES * 3] + 1
     fx, fy = background.fx, background.fy
     windows: list[Roi] = []
@@ -76,6 +79,9 @@ def coarse_windows(background: LogBackground, settings: RecognitionSettings) -> 
         if extent > settings.max_extent_px:
             # A long core may be a vessel with the robot on it: keep only the part connected to the peak.
             bx0, by0, bx1, by1 = (int(v) for v in stats[label, background_kernels.STAT_X0:background_kernels.STAT_Y1 + 1])
+            if labels is None:   # the label image, only for this (rare) case: the same kernel again
+                labels = np.zeros(a.shape, dtype=np.int32)
+                background_kernels.coarse_components(a, threshold, settings.core_fraction, labels)
             comp = labels[by0:by1, bx0:bx1] == label
             ys, xs = np.nonzero(core_of(a[by0:by1, bx0:bx1], comp, peak, settings.core_fraction))
             x0, y0, x1, y1 = bx0 + int(xs.min()), by0 + int(ys.min()), bx0 + int(xs.max()) + 1, by0 + int(ys.max()) + 1

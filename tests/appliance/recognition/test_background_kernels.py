@@ -99,6 +99,10 @@ def test_coarse_components_match_opencv_and_the_core_boxes() -> None:
     np.testing.assert_array_equal(stats[1:, kernels.STAT_Y0], ref[1:, cv2.CC_STAT_TOP])
     np.testing.assert_array_equal(stats[1:, kernels.STAT_X1] - stats[1:, kernels.STAT_X0], ref[1:, cv2.CC_STAT_WIDTH])
     np.testing.assert_array_equal(stats[1:, kernels.STAT_Y1] - stats[1:, kernels.STAT_Y0], ref[1:, cv2.CC_STAT_HEIGHT])
+    # Without a label image: the same statistics.
+    unlabelled, unlabelled_peaks = kernels.coarse_components(a, threshold, fraction, np.zeros((0, 0), np.int32))
+    np.testing.assert_array_equal(unlabelled, stats)
+    np.testing.assert_array_equal(unlabelled_peaks, peaks)
     # Numbered in raster order of their first pixel.
     firsts = [int(np.flatnonzero(labels.ravel() == label)[0]) for label in range(1, n)]
     assert firsts == sorted(firsts)
