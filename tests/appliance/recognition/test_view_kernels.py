@@ -116,3 +116,36 @@ def test_scanline_fill_takes_exactly_the_components_holding_a_seed() -> None:
         np.testing.assert_array_equal(out.astype(bool), expected)
         assert n == int(expected.sum())
         assert out[ys[:n], xs[:n]].all() and len(set(zip(ys[:n].tolist(), xs[:n].tolist()))) == n
+
+
+def _reference_roi_around(points_px: np.ndarray, margin_px: float, shape: tuple[int, int]) -> Roi | None:
+    """The numpy formula :meth:`Roi.around` replaced (plain floats now): the same boxes, to the pixel."""
+    points = np.asarray(points_px, dtype=np.float64).reshape(-1, 2)
+    if not np.all(np.isfinite(points)):
+        return None
+    h, w = int(shape[0]), int(shape[1])
+    x0 = max(0, int(np.floor(points[:, 0].min() - margin_px)))
+    y0 = max(0, int(np.floor(points[:, 1].min() - margin_px)))
+    x1 = min(w, int(np.ceil(points[:, 0].max() + margin_px)) + 1)
+    y1 = min(h, int(np.ceil(points[:, 1].max() + margin_px)) + 1)
+    if x1 - x0 < 4 or y1 - y0 < 4:
+        return None
+    return Roi(x0, y0, x1, y1)
+
+
+def test_roi_around_equals_the_numpy_formula() -> None:
+    rng = np.random.default_rng(8)
+    shape = (300, 260)
+    cases = [rng.uniform(-80.0, 380.0, (3, 2)) for _ in range(400)]
+    cases += [np.round(rng.uniform(-10.0, 310.0, (3, 2))) for _ in range(100)]     # integer edges
+    cases += [np.array([[5.0, 5.0], [np.nan, 7.0], [9.0, 9.0]]), np.array([[np.inf, 1.0], [2.0, 3.0]]),
+              np.array([[-500.0, -500.0], [-400.0, -450.0]]), np.array([[259.5, 299.5]]), np.array([[1.0, 2.0]])]
+    boxes = 0
+    for points in cases:
+        for margin in (0.0, 2.5, 24.0):
+            got = Roi.around(points, margin, shape)
+            assert got == _reference_roi_around(points, margin, shape), (points, margin)
+            if got is not None:
+                boxes += 1
+                assert all(type(v) is int for v in (got.x0, got.y0, got.x1, got.y1))
+    assert boxes > 1000   # most cases give a box: the comparison is not all None == None
