@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from appliance.compiled import warm_up_all
 from appliance.control import ActuationModel, CurrentAllocator, PathFollower, SafetySupervisor, load_coils, load_path
 from appliance.device_factory import Devices, open_devices
 from appliance.errors import ConfigError
@@ -128,6 +129,11 @@ class Simulation:
                 safety=SafetySupervisor(config.safety), allocator=CurrentAllocator(ActuationModel(self.coils)),
                 moment_am2=self.robot.magnetic_moment_am2, settings=LoopSettings.from_config(config),
                 clock=self.bench.clock, ots=self.devices.ots, listeners=listeners, names=self.devices.names)
+            # Compile the kernels now, while simulated time stands still: the orchestrator's start()
+            # (which would do it otherwise) runs with the world following the wall clock, and after a
+            # cold compile (minutes on a loaded machine) the world's catch-up would outlast the start
+            # and hold the amplifier fake's lock while the loop waits for its replies.
+            warm_up_all()
         except BaseException:
             self.devices.close()
             raise
