@@ -230,20 +230,25 @@ def _blob_from_component(a: np.ndarray, smooth: np.ndarray, labels: np.ndarray, 
 
 
 def segment(image: np.ndarray, log_bg: np.ndarray | LogBackground, roi: Roi | None = None,
-            settings: RecognitionSettings | None = None) -> list[Blob]:
+            settings: RecognitionSettings | None = None, *, sigma: float | None = None) -> list[Blob]:
     """Robot candidates in ``roi`` (whole image if None), strongest first; empty if none is plausible.
 
     ``log_bg`` is :func:`log_background` of a recent frame of the same view (or a full-frame float32
     ``log B``). With ``roi`` None every pixel is examined; :func:`detect` finds the same candidates
     from the coarse image without that full-resolution pass.
+
+    ``sigma`` is the attenuation image's noise standard deviation if already known (None: measured
+    on the region, :func:`noise_sigma`, ~15 us). The tracker passes the one a recent frame of the same
+    view measured: the detector and the dose, hence the noise, do not change from frame to frame.
     """
     settings = settings or RecognitionSettings()
     region = roi or Roi.full(image.shape)
     a = attenuation(image, log_bg, region, settings.dark_level)
     # Noise sigma, the 5x5 sigma=1 Gaussian, components above the threshold, largest first.
+    known = float(sigma) if sigma is not None and math.isfinite(sigma) and sigma > 0 else 0.0
     sigma, smooth, labels, stats, order = view_kernels.candidates(
         a, view_kernels.GAUSSIAN_5, settings.detect_sigma, _SMOOTH_NOISE_GAIN,
-        settings.core_fraction * settings.min_peak_attenuation)
+        settings.core_fraction * settings.min_peak_attenuation, known)
     blobs = []
     for label in order[:MAX_CANDIDATES * 3].tolist():
         if stats[label, 4] < settings.min_pixels:

@@ -53,6 +53,11 @@ class _Track:
     lost_frames: int = 0
 
 
+#: While tracking, a view's noise sigma is measured on one ROI and reused for the next frames (same
+#: detector, same dose); measured again every this many frames so that a change of dose is followed.
+NOISE_REMEASURE_FRAMES = 30
+
+
 class PostureTracker:
     """Recognises the robot's posture in successive biplane frame pairs (see the module docstring)."""
 
@@ -155,13 +160,22 @@ class PostureTracker:
         d0, d1, d2 = track.direction.tolist() if track.direction is not None else (0.0, 0.0, 0.0)
         # The robot's centre and ends, predicted, in both views (2, 3, 2): one compiled call.
         projected = project_segment(self.calibration.packed, c0, c1, c2, d0, d1, d2, half)
+        # Per view: (the background it was measured against, noise sigma, frames it has served). A new
+        # background (reset, full-frame search) means a new measurement.
+        noise: dict[str, tuple[LogBackground, float, int]] | None = getattr(self, "_roi_noise", None)
+        if noise is None:
+            noise = self._roi_noise = {}
         blobs: dict[str, Blob] = {}
         start = time.perf_counter_ns()
         for index, name in enumerate(VIEWS):
             roi = Roi.around(projected[index], self.settings.roi_margin_px, images[name].shape)
-            if roi is None or name not in self._log_bg:
+            log_bg = self._log_bg.get(name)
+            if roi is None or log_bg is None:
                 return None
-            candidates = segment(images[name], self._log_bg[name], roi, self.settings)
+            known = noise.get(name)
+            reuse = known is not None and known[0] is log_bg and known[2] < NOISE_REMEASURE_FRAMES
+            candidates = segment(images[name], log_bg, roi, self.settings,
+                                 sigma=known[1] if reuse and known is not None else None)
             u, v = projected[index, 0].tolist()
             near = [b for b in candidates if not b.touches_border
                     and math.hypot(b.centroid_px[0] - u, b.centroid_px[1] - v) <= self.settings.gate_px]
@@ -169,6 +183,7 @@ class PostureTracker:
                 log.debug("view %s: robot not found in ROI %s; falling back to full frame", name, roi)
                 return None
             blobs[name] = near[0]
+            noise[name] = (log_bg, near[0].sigma, known[2] + 1 if reuse and known is not None else 1)
         timings["segmentation"] += (time.perf_counter_ns() - start) / 1e3
         start = time.perf_counter_ns()
         feats = {name: self._features(blobs[name]) for name in VIEWS}

@@ -327,12 +327,14 @@ def label_above(smooth, threshold):  # pragma: no cover - compiled
 
 
 @kernel
-def candidates(a, g, detect_sigma, smooth_gain, floor):  # pragma: no cover - compiled
+def candidates(a, g, detect_sigma, smooth_gain, floor, known_sigma):  # pragma: no cover - compiled
     """The candidate step of :func:`segment`: noise sigma, smoothed image, components above threshold.
 
+    ``known_sigma`` > 0 is used as the noise sigma instead of measuring it (the tracker's steady state,
+    where a view's noise does not change from frame to frame); 0 or NaN measures it here.
     Returns ``(sigma, smooth, labels, stats, order)``: ``order`` lists the labels by decreasing area
     (ties in label order)."""
-    sigma = noise_sigma_f32(a)
+    sigma = known_sigma if known_sigma > 0.0 else noise_sigma_f32(a)
     if not (sigma > 0.0) or not math.isfinite(sigma):
         sigma = 1e-3
     smooth = gaussian5(a, g)
@@ -993,7 +995,7 @@ def warm_up() -> None:
     coarse = np.full((4, 5), np.float32(math.log(20000.0)))
     a = attenuation_from_coarse(image, 0, h, 0, w, coarse, 8.0, 8.0, table)
     attenuation_from_dense(image, np.full((h, w), np.float32(math.log(20000.0))), table)
-    _, smooth, labels, stats, order = candidates(a, GAUSSIAN_5, 6.0, 0.29, 0.125)
+    _, smooth, labels, stats, order = candidates(a, GAUSSIAN_5, 6.0, 0.29, 0.125, 0.0)
     disk = np.array([1, 2, 2, 2, 1], dtype=np.int64)
     params = np.array([0.25, 0.5, 8, 420, 40.0, 0.7, 2, 3.0, 0.2, 0.29, 3, 7, 4], dtype=np.float64)
     for label in order:

@@ -149,3 +149,86 @@ def test_roi_around_equals_the_numpy_formula() -> None:
                 boxes += 1
                 assert all(type(v) is int for v in (got.x0, got.y0, got.x1, got.y1))
     assert boxes > 1000   # most cases give a box: the comparison is not all None == None
+
+
+def _noisy_body_view() -> tuple[np.ndarray, np.ndarray]:
+    """A 64x96 view of a bright field with one elongated dark body and Poisson-like noise (raw, log B)."""
+    rng = np.random.default_rng(11)
+    yy, xx = np.mgrid[0:64, 0:96]
+    body = 0.8 * np.exp(-(((xx - 48.0) / 14.0) ** 2 + ((yy - 32.0) / 3.0) ** 2) ** 2)
+    image = 20000.0 * np.exp(-body) + rng.normal(0.0, 140.0, body.shape)
+    return np.clip(image, 0, 65535).astype(np.uint16), np.full(body.shape, np.float32(math.log(20000.0)))
+
+
+def test_segment_with_the_known_noise_sigma_equals_measuring_it() -> None:
+    from appliance.recognition import RecognitionSettings, segment
+
+    image, log_bg = _noisy_body_view()
+    settings = RecognitionSettings()
+    measured = segment(image, log_bg, None, settings)
+    assert len(measured) == 1 and measured[0].sigma > 0
+    given = segment(image, log_bg, None, settings, sigma=measured[0].sigma)
+    assert len(given) == 1
+    for field in ("pixel_count", "peak", "baseline", "sigma", "strength", "centroid_px", "window"):
+        assert getattr(given[0], field) == getattr(measured[0], field), field
+    np.testing.assert_array_equal(given[0].mask, measured[0].mask)
+    np.testing.assert_array_equal(given[0].weights, measured[0].weights)
+    # The given sigma is the one used (not measured again), and None/NaN/0 measure it.
+    assert segment(image, log_bg, None, settings, sigma=0.75 * measured[0].sigma)[0].sigma == 0.75 * measured[0].sigma
+    for unknown in (None, math.nan, 0.0):
+        assert segment(image, log_bg, None, settings, sigma=unknown)[0].sigma == measured[0].sigma
+    # A sigma far above the noise raises the detection threshold above the body: nothing is found.
+    assert segment(image, log_bg, None, settings, sigma=1.0) == []
+
+
+def test_tracker_reuses_a_views_noise_sigma_and_measures_it_again_periodically(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    from appliance.geometry import Calibration, View
+    from appliance.recognition import PostureTracker
+    from appliance.recognition import tracker as tracker_module
+    from drivers.loopback.xray_render import (
+        BiplaneRenderer,
+        ImagingSettings,
+        RobotBody,
+        RobotPose,
+        biplane_views,
+    )
+
+    true_views = biplane_views(image_size=(256, 224), fov_mm=(80.0, 70.0))
+    calibration = Calibration.from_views(*(View(n, v.K, v.dist, v.R, v.t, v.image_size)
+                                           for n, v in sorted(true_views.items())))
+    renderer = BiplaneRenderer(true_views, RobotBody(10.0, 2.0, 20.0, 1.0), settings=ImagingSettings(), seed=5)
+    passed: list[tuple[str, float | None, float]] = []
+    real_segment = tracker_module.segment
+
+    def spy(image, log_bg, roi, settings, *, sigma=None):  # type: ignore[no-untyped-def]
+        blobs = real_segment(image, log_bg, roi, settings, sigma=sigma)
+        passed.append(("p" if len(passed) % 2 == 0 else "q", sigma, blobs[0].sigma if blobs else math.nan))
+        return blobs
+
+    monkeypatch.setattr(tracker_module, "segment", spy)
+    monkeypatch.setattr(tracker_module, "NOISE_REMEASURE_FRAMES", 3)
+    tracker = PostureTracker(calibration)
+    for n in range(8):
+        t = 0.04 * n
+        pose = RobotPose(np.array([-4.0 + 10.0 * t, 2.0, 3.0]), np.array([1.0, 0.3, 0.4]))
+        pair = renderer.render(pose)
+        assert tracker.process(pair.images["p"], pair.images["q"], frame=n, t=t).ok
+        assert tracker.last_search == ("full" if n == 0 else "roi")
+    # Frames 1..7 search ROIs: measured on frames 1, 4, 7, reused (the last measurement) on the others.
+    rois = [passed[i:i + 2] for i in range(len(passed) - 14, len(passed), 2)]
+    for k, frame_calls in enumerate(rois):
+        for view, sigma, used in frame_calls:
+            if k % 3 == 0:
+                assert sigma is None, (k, view)
+            else:
+                assert sigma is not None and used == sigma
+                measured_on = rois[k - k % 3]
+                assert sigma == next(u for v, _, u in measured_on if v == view)
+    # A reset (new backgrounds) measures again on the first ROI frame.
+    tracker.reset()
+    passed.clear()
+    for n in range(2):
+        pair = renderer.render(RobotPose(np.array([0.0, 2.0, 3.0]), np.array([1.0, 0.3, 0.4])))
+        tracker.process(pair.images["p"], pair.images["q"], frame=10 + n, t=0.5 + 0.04 * n)
+    assert [s for _, s, _ in passed[-2:]] == [None, None]
