@@ -177,12 +177,13 @@ def weighted_features(blob: Blob, settings: RecognitionSettings | None = None) -
     """
     settings = settings or RecognitionSettings()
     cap = settings.axis_saturation * blob.peak if settings.axis_saturation < 1.0 else math.inf
-    status, out, reach_px = view_kernels.weighted_view_features(_as_weights(blob.weights), cap, float(blob.sigma),
-                                                                _LEVELS_ARRAY)
+    status, out = view_kernels.weighted_view_features(_as_weights(blob.weights), cap, float(blob.sigma),
+                                                      _LEVELS_ARRAY)
     if not status:
         raise ValueError("weights sum to zero or less")
-    cx, cy, l1, l2, vx, vy, axis_sigma = out.tolist()
-    plus, minus = reach_px.tolist()
+    numbers = out.tolist()
+    cx, cy, l1, l2, vx, vy, axis_sigma = numbers[:7]
+    plus, minus = numbers[7:7 + len(_LEVELS)], numbers[7 + len(_LEVELS):]
     reach = (dict(zip(_LEVELS, plus)), dict(zip(_LEVELS, minus)))
     ramps = (reach[0][0.2] - reach[0][0.8], reach[1][0.2] - reach[1][0.8])
     head: int | None = None

@@ -200,7 +200,7 @@ _PARAMETERS: dict[int, tuple[RecognitionSettings, tuple[np.ndarray, np.ndarray, 
 
 
 def _blob_from_component(a: np.ndarray, smooth: np.ndarray, labels: np.ndarray, label: int,
-                         stats: np.ndarray, region: Roi, sigma: float, settings: RecognitionSettings) -> Blob | None:
+                         box: list[int], region: Roi, sigma: float, settings: RecognitionSettings) -> Blob | None:
     """Refine one detected component into a robot candidate, or None if it is not plausible.
 
     The robot's core (strong part connected to the peak) gives a provisional axis; the body's full
@@ -214,14 +214,13 @@ def _blob_from_component(a: np.ndarray, smooth: np.ndarray, labels: np.ndarray, 
     background near the body. The arithmetic is :func:`.view_kernels.refine`.
     """
     params, ring_outer, ring_inner, near = _refine_parameters(settings)
-    x, y, bw, bh = (int(v) for v in stats[label, :4])
-    status, win, weights, mask, sc = view_kernels.refine(a, smooth, labels, label, x, y, bw, bh, sigma, params,
-                                                          ring_outer, ring_inner, near)
+    x, y, bw, bh = box
+    status, weights, mask, sc = view_kernels.refine(a, smooth, labels, label, x, y, bw, bh, sigma, params,
+                                                    ring_outer, ring_inner, near)
     if not status:
         return None
-    wy0, wy1, wx0, wx1 = (int(v) for v in win)
-    window = Roi(region.x0 + wx0, region.y0 + wy0, region.x0 + wx1, region.y0 + wy1)
-    height, baseline, strength, cx, cy, edge, minor, clutter, count = sc.tolist()
+    wy0, wy1, wx0, wx1, height, baseline, strength, cx, cy, edge, minor, clutter, count = sc.tolist()
+    window = Roi(region.x0 + int(wx0), region.y0 + int(wy0), region.x0 + int(wx1), region.y0 + int(wy1))
     # A cylinder's chord profile 2 sqrt(r^2 - t^2) has variance r^2 / 4 across its axis.
     return Blob(window=window, weights=weights, mask=mask.view(bool), pixel_count=int(count), peak=height,
                 baseline=baseline, sigma=sigma, strength=strength, centroid_px=(window.x0 + cx, window.y0 + cy),
@@ -251,9 +250,10 @@ def segment(image: np.ndarray, log_bg: np.ndarray | LogBackground, roi: Roi | No
         settings.core_fraction * settings.min_peak_attenuation, known)
     blobs = []
     for label in order[:MAX_CANDIDATES * 3].tolist():
-        if stats[label, 4] < settings.min_pixels:
+        x, y, bw, bh, area = stats[label].tolist()
+        if area < settings.min_pixels:
             break
-        blob = _blob_from_component(a, smooth, labels, int(label), stats, region, sigma, settings)
+        blob = _blob_from_component(a, smooth, labels, label, [x, y, bw, bh], region, sigma, settings)
         if blob is not None:
             blobs.append(blob)
     blobs.sort(key=lambda b: -b.strength)

@@ -645,10 +645,11 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
     fill_rows, fill_cols, fade_step]``; ``ring_outer``/``ring_inner``/``near_hw`` the row spans of the
     dilations (ring and weighted support).
 
-    Returns ``(status, window, weights, mask, scalars)``: status 0 if the component is not a plausible
-    robot; ``window`` ``[y0, y1, x0, x1]`` (``a``'s pixels) is where ``weights`` and ``mask`` sit, the
-    bounding box of the weighted pixels; ``scalars`` ``[peak above baseline, baseline, strength,
-    centroid x, centroid y (window px), edge, minor moment, clutter, pixel count]``.
+    Returns ``(status, weights, mask, scalars)``: status 0 if the component is not a plausible robot;
+    ``scalars`` ``[y0, y1, x0, x1, peak above baseline, baseline, strength, centroid x, centroid y
+    (window px), edge, minor moment, clutter, pixel count]``, where ``y0:y1, x0:x1`` (``a``'s pixels,
+    the bounding box of the weighted pixels) is the window on which ``weights`` and ``mask`` sit.
+    (One float array for all the numbers: each array a kernel returns costs a boxing in Python.)
 
     Pixels are visited as lists (flood fills from the core), so the cost follows the body, not the
     window around it."""
@@ -660,8 +661,7 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
     sigma_s = sigma * smooth_gain
     empty_w = np.zeros((0, 0), dtype=np.float32)
     empty_m = np.zeros((0, 0), dtype=np.uint8)
-    nothing = np.zeros(4, dtype=np.int64)
-    no_scalars = np.zeros(9)
+    no_scalars = np.zeros(13)
     # The component's peak (its first maximum in raster order) and its core: the part above
     # core_fraction of the peak, 8-connected to it.
     # (Rows are sliced first throughout: indices from range(0, n) are known non-negative, so the
@@ -674,7 +674,7 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
                 peak32, py, px = srow[x], by + y, bx + x
     peak = float(peak32)
     if peak < min_peak:
-        return 0, nothing, empty_w, empty_m, no_scalars
+        return 0, empty_w, empty_m, no_scalars
     level32 = np.float32(core_fraction * peak)
     strong = np.empty((bh, bw), dtype=np.uint8)
     for y in range(bh):
@@ -688,7 +688,7 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
     seed_x = np.array([px - bx])
     n = _scanline_fill(strong, seen, seed_y, seed_x, 1, cys, cxs, 0)
     if n < min_pixels:
-        return 0, nothing, empty_w, empty_m, no_scalars
+        return 0, empty_w, empty_m, no_scalars
     sx = sy = 0
     xmin, xmax, ymin, ymax = bw, -1, bh, -1
     for i in range(n):
@@ -697,7 +697,7 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
         xmin, xmax = min(xmin, cxs[i]), max(xmax, cxs[i])
         ymin, ymax = min(ymin, cys[i]), max(ymax, cys[i])
     if max(xmax - xmin, ymax - ymin) + 1 > max_extent:
-        return 0, nothing, empty_w, empty_m, no_scalars
+        return 0, empty_w, empty_m, no_scalars
     cx, cy = sx / n, sy / n
     # The scatter summed in raster order, as the numpy code did: a body at 45 degrees has equal
     # diagonal terms, and the rounding then picks the background fill's direction.
@@ -711,7 +711,7 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
                 sxy += dx * dy
     l1, l2, ax, ay = _principal(sxx, syy, sxy, n)
     if math.sqrt(l1 / max(l2, 1e-3)) > max_elongation:
-        return 0, nothing, empty_w, empty_m, no_scalars
+        return 0, empty_w, empty_m, no_scalars
     s_min, s_max, t_max = np.inf, -np.inf, 0.0
     for i in range(n):
         dx, dy = cxs[i] - cx, cys[i] - cy
@@ -750,7 +750,7 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
     baseline = float(median_inplace(ring_vals, nr)) if nr > 0 else 0.0
     height = peak - baseline
     if height < min_peak:
-        return 0, nothing, empty_w, empty_m, no_scalars
+        return 0, empty_w, empty_m, no_scalars
     # The body: above the baseline by ``level``, inside the capsule, 8-connected to the core.
     level = max(support_sigma * sigma_s, support_fraction * height)
     base32, lvl32 = np.float32(baseline), np.float32(level)
@@ -793,7 +793,7 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
         else:
             mask[mys[i], mxs[i]] = 0
     if count == 0:
-        return 0, nothing, empty_w, empty_m, no_scalars
+        return 0, empty_w, empty_m, no_scalars
     # The support: a rectangle around the body (along its axis), on its bounding box in the window.
     lo_t, hi_s_, lo_s_, hi_t = in_t + pad, in_hi + pad, in_lo - pad, in_t + pad
     gxs = np.empty(4)
@@ -853,12 +853,12 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
     body = mask[ky0:ky1, kx0:kx1].copy()
     m00, m10, m01, mu20, mu02, mu11 = moments(weights)
     if not m00 > 0.0:
-        return 0, nothing, empty_w, empty_m, no_scalars
+        return 0, empty_w, empty_m, no_scalars
     _, minor, _, _ = _principal(mu20, mu02, mu11, 1)
-    window = np.array([wy0 + ky0, wy0 + ky1, wx0 + kx0, wx0 + kx1], dtype=np.int64)
-    scalars = np.array([height, baseline, m00, m10 / m00, m01 / m00, 1.0 if edge else 0.0, minor,
+    scalars = np.array([float(wy0 + ky0), float(wy0 + ky1), float(wx0 + kx0), float(wx0 + kx1),
+                        height, baseline, m00, m10 / m00, m01 / m00, 1.0 if edge else 0.0, minor,
                         (bmax - bmin) / height if any_near else 0.0, float(count)])
-    return 1, window, weights, body, scalars
+    return 1, weights, body, scalars
 
 
 # ------------------------------------------------------------------------------------------- features
@@ -954,21 +954,22 @@ def reach_at(profile, s0, level, direction):  # pragma: no cover - compiled
 def weighted_view_features(weights, cap, pixel_sigma, levels):  # pragma: no cover - compiled
     """The weighted estimator's numbers (see features.weighted_features).
 
-    ``cap`` < inf saturates the weights for the axis. Returns ``(status, out, reach)``: status 0 if
-    the weights sum to zero or less; ``out`` ``[cx, cy, l1, l2, vx, vy, axis_sigma]`` (window px);
-    ``reach[end, level]`` the outward distances of both ends (0: +axis) at each of ``levels``."""
-    out = np.zeros(7)
-    reach = np.zeros((2, levels.size))
+    ``cap`` < inf saturates the weights for the axis. Returns ``(status, out)``: status 0 if the
+    weights sum to zero or less; ``out`` ``[cx, cy, l1, l2, vx, vy, axis_sigma]`` (window px) followed
+    by the outward distances of the +axis end at each of ``levels``, then those of the -axis end (one
+    array: each array a kernel returns costs a boxing in Python)."""
+    n = levels.size
+    out = np.zeros(7 + 2 * n)
     m00, m10, m01, mu20, mu02, mu11 = moments(weights)
     if not m00 > 0:
-        return 0, out, reach
+        return 0, out
     c0, c1 = m10 / m00, m01 / m00
     l1, l2, v0, v1 = _eig2(mu20 / m00, mu02 / m00, mu11 / m00)
     if math.isfinite(cap):
         capped = np.minimum(weights, np.float32(cap))
         t00, _, _, t20, t02, t11 = moments(capped)
         if not t00 > 0:
-            return 0, out, reach
+            return 0, out
         _, _, a0, a1 = _eig2(t20 / t00, t02 / t00, t11 / t00)
         if a0 * v0 + a1 * v1 >= 0:
             v0, v1 = a0, a1
@@ -977,11 +978,11 @@ def weighted_view_features(weights, cap, pixel_sigma, levels):  # pragma: no cov
     profile, s0 = axial_profile_of(weights, c0, c1, v0, v1)
     axis_sigma = axis_sigma_of(weights, c0, c1, v0, v1, l1 - l2, pixel_sigma)
     plateau = profile.max()
-    for k in range(levels.size):
-        reach[0, k] = reach_at(profile, s0, levels[k] * plateau, 1)
-        reach[1, k] = reach_at(profile, s0, levels[k] * plateau, -1)
+    for k in range(n):
+        out[7 + k] = reach_at(profile, s0, levels[k] * plateau, 1)
+        out[7 + n + k] = reach_at(profile, s0, levels[k] * plateau, -1)
     out[0], out[1], out[2], out[3], out[4], out[5], out[6] = c0, c1, l1, l2, v0, v1, axis_sigma
-    return 1, out, reach
+    return 1, out
 
 
 # ------------------------------------------------------------------------------------------- warm-up
