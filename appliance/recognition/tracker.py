@@ -155,7 +155,11 @@ class PostureTracker:
                      ) -> tuple[dict[str, Blob], dict[str, Features2D]] | None:
         track = self._track
         assert track is not None
-        c0, c1, c2 = (track.centroid + track.velocity * (t - track.t)).tolist()
+        # The constant-velocity prediction in plain floats (the same IEEE operations as on the arrays,
+        # without numpy's per-call overhead on three numbers).
+        dt = t - track.t
+        (x, y, z), (vx, vy, vz) = track.centroid.tolist(), track.velocity.tolist()
+        c0, c1, c2 = x + vx * dt, y + vy * dt, z + vz * dt
         half = 0.5 * (track.length_mm or 0.0) + 1.0
         d0, d1, d2 = track.direction.tolist() if track.direction is not None else (0.0, 0.0, 0.0)
         # The robot's centre and ends, predicted, in both views (2, 3, 2): one compiled call.
