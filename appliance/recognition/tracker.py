@@ -20,15 +20,32 @@ from dataclasses import dataclass
 import numpy as np
 
 from appliance.errors import InputDataError
-from appliance.geometry import Calibration, epipolar_distance_px, fundamental_matrix, triangulate
+from appliance.geometry import (
+    Calibration,
+    epipolar_distance_px,
+    fundamental_matrix,
+    triangulate,
+)
 from appliance.geometry_kernels import project_segment
 from appliance.recognition.correspondence import pair_candidates, pairing_rms
+from appliance.recognition.detection import detect
 from appliance.recognition.features import Features2D, features
-from appliance.recognition.plausibility import cut_by_edge, declutter, not_robot_like
+from appliance.recognition.plausibility import (
+    at_odds_with_track,
+    cut_by_edge,
+    declutter,
+    not_robot_like,
+    off_its_images,
+)
 from appliance.recognition.posture import Posture, ViewObservation
 from appliance.recognition.reconstruction import Reconstruction, reconstruct
-from appliance.recognition.detection import detect
-from appliance.recognition.segmentation import Blob, LogBackground, Roi, log_background, segment
+from appliance.recognition.segmentation import (
+    Blob,
+    LogBackground,
+    Roi,
+    log_background,
+    segment,
+)
 from appliance.recognition.settings import RecognitionSettings
 
 log = logging.getLogger(__name__)
@@ -51,6 +68,10 @@ class _Track:
     length_mm: float | None
     velocity: np.ndarray  # mm/s, zero until two frames are known
     lost_frames: int = 0
+    #: Per view, the last image's centroid and ends and the body's half width (px, plain floats): the ROI
+    #: must hold the whole blob with room for the segmentation's ring and fill across it, also for a wide
+    #: robot (#6 is ~25 px wide at 1024 px) and when the 3D axis is unknown (unresolved mirror ambiguity).
+    view_outline_px: dict[str, tuple[float, float, float, float, float, float, float]] | None = None
 
 
 #: While tracking, a view's noise sigma is measured on one ROI and reused for the next frames (same
@@ -68,6 +89,9 @@ class PostureTracker:
         self._log_bg: dict[str, LogBackground] = {}
         self._track: _Track | None = None
         self._last_search = "none"
+        # Per view: the background a ROI's noise sigma was measured against, the sigma, and how many
+        # frames it has served (entries are tied to the background object, so reset() need not clear them).
+        self._roi_noise: dict[str, tuple[LogBackground, float, int]] = {}
 
     def reset(self) -> None:
         """Forget the history and the cached backgrounds (the next frame is a full-frame detection)."""
@@ -122,7 +146,10 @@ class PostureTracker:
                        f"{tips_rms:.1f} px); one view's blob is not (only) the robot")
         else:
             failure = (not_robot_like(self.calibration, rec, blobs, self.settings)
-                       or cut_by_edge(self.calibration, blobs))
+                       or cut_by_edge(self.calibration, blobs)
+                       or off_its_images(self.calibration, rec, blobs, self.settings)
+                       or at_odds_with_track(rec, blobs, previous, self._track.length_mm if self._track else None,
+                                             self.settings))
             if failure is not None:
                 log.debug("frame %d rejected: %s", frame, failure)
         if failure is not None:
@@ -166,13 +193,22 @@ class PostureTracker:
         projected = project_segment(self.calibration.packed, c0, c1, c2, d0, d1, d2, half)
         # Per view: (the background it was measured against, noise sigma, frames it has served). A new
         # background (reset, full-frame search) means a new measurement.
-        noise: dict[str, tuple[LogBackground, float, int]] | None = getattr(self, "_roi_noise", None)
-        if noise is None:
-            noise = self._roi_noise = {}
+        noise = self._roi_noise
         blobs: dict[str, Blob] = {}
         start = time.perf_counter_ns()
         for index, name in enumerate(VIEWS):
-            roi = Roi.around(projected[index], self.settings.roi_margin_px, images[name].shape)
+            points, margin = projected[index], float(self.settings.roi_margin_px)
+            outline = track.view_outline_px.get(name) if track.view_outline_px else None
+            if outline is not None:
+                # The last frame's 2D ends, moved with the predicted image centroid (the 3D ends at the
+                # centroid +- half the length miss where a cone puts the centroid off the middle: 5.7 mm
+                # on robot 6), and the margin counted from the body's edge, not its axis.
+                cu, cv, u0, v0, u1, v1, half_width = outline
+                pu, pv = projected[index, 0].tolist()
+                du, dv = pu - cu, pv - cv
+                points = [[pu, pv], [u0 + du, v0 + dv], [u1 + du, v1 + dv]]
+                margin += half_width
+            roi = Roi.around(points, margin, images[name].shape)
             log_bg = self._log_bg.get(name)
             if roi is None or log_bg is None:
                 return None
@@ -325,9 +361,12 @@ class PostureTracker:
         direction = posture.direction
         if direction is None and old is not None:
             direction = old.direction  # unresolved mirror ambiguity: keep the last known axis for the ROI
+        outline = {name: (*view.centroid_px.tolist(), *view.tips_px.ravel().tolist(),
+                          2.0 * math.sqrt(max(float(view.eigenvalues[1]), 0.0)))
+                   for name, view in posture.views.items() if view is not None}
         self._track = _Track(posture.t, posture.centroid_mm.copy(), direction,
                              posture.length_mm if posture.length_mm is not None else (old.length_mm if old else None),
-                             velocity)
+                             velocity, view_outline_px=outline)
 
     def _lose(self) -> None:
         if self._track is None:
