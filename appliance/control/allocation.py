@@ -30,7 +30,12 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from appliance.compiled import kernel, register_warm_up
-from appliance.control.actuation import _FD_STEP_M, ActuationModel, _field_and_gradient
+from appliance.control.actuation import (
+    _FD_STEP_M,
+    ActuationModel,
+    _field_and_gradient,
+    _force_rows,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -230,11 +235,7 @@ def _allocate(b_per_amp: FloatArray, gradient: FloatArray, field_t: FloatArray, 
     """The allocation of one frame (see the module docstring): ``(currents, scale, code of limited_by,
     achieved field, achieved force, residual)``."""
     n = b_per_amp.shape[1]
-    f_per_amp = np.zeros((3, n))
-    for i in range(3):
-        for j in range(3):
-            for k in range(n):
-                f_per_amp[j, k] += moment[i] * gradient[3 * i + j, k]
+    f_per_amp = _force_rows(gradient, moment)
     ideal, residual, normalised = _solve(b_per_amp, f_per_amp, field_t, force_n,
                                          math.sqrt(np.sum(moment * moment)), rcond)
 

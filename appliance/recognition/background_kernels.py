@@ -22,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 from appliance.compiled import kernel, register_warm_up
+from appliance.recognition.run_sets import number_sets, union
 
 #: Columns of :func:`coarse_components`' statistics rows.
 STAT_AREA, STAT_X0, STAT_Y0, STAT_X1, STAT_Y1, STAT_CORE_X0, STAT_CORE_Y0, STAT_CORE_X1, STAT_CORE_Y1 = range(9)
@@ -176,15 +177,6 @@ def median_abs_step(a: np.ndarray, row_step: int) -> float:  # pragma: no cover
 
 
 @kernel
-def _root(parent: np.ndarray, i: int) -> int:  # pragma: no cover
-    """The root of ``i`` in the union-find forest ``parent``, halving the path on the way."""
-    while parent[i] != i:
-        parent[i] = parent[parent[i]]
-        i = parent[i]
-    return i
-
-
-@kernel
 def coarse_components(a: np.ndarray, threshold: float, core_fraction: float,
                       labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
     """8-connected components of ``a > threshold``, labelled 1.. in raster order of their first pixel
@@ -243,23 +235,11 @@ def coarse_components(a: np.ndarray, threshold: float, core_fraction: float,
                 j += 1
             k = j
             while k < above_end and run_x0[k] <= run_x1[i]:
-                ri, rk = _root(parent, i), _root(parent, k)
-                if ri < rk:
-                    parent[rk] = ri
-                elif rk < ri:
-                    parent[ri] = rk
+                union(parent, i, k)
                 k += 1
         above_start, above_end = start, nr
     with_labels = labels.shape[0] == h and labels.shape[1] == w
-    label_of = np.empty(nr, dtype=np.int64)
-    n = 1
-    for i in range(nr):
-        r = _root(parent, i)
-        if r == i:
-            label_of[i] = n
-            n += 1
-        else:
-            label_of[i] = label_of[r]
+    label_of, n = number_sets(parent, nr)
     stats = np.zeros((n, STAT_COLUMNS), dtype=np.int64)
     peaks = np.zeros(n, dtype=np.float32)
     for label in range(1, n):

@@ -17,6 +17,7 @@ import math
 import numpy as np
 
 from appliance.compiled import kernel, register_warm_up
+from appliance.recognition.run_sets import number_sets, union
 
 #: The 5-tap sigma=1 Gaussian (OpenCV's getGaussianKernel(5, 1.0) in float32).
 GAUSSIAN_5 = np.array([0.05448868, 0.24420135, 0.40261996, 0.24420135, 0.05448868], dtype=np.float32)
@@ -242,14 +243,6 @@ def gaussian5(a, g):  # pragma: no cover - compiled
 
 
 @kernel
-def _find(parent, i):  # pragma: no cover - compiled
-    while parent[i] != i:
-        parent[i] = parent[parent[i]]
-        i = parent[i]
-    return i
-
-
-@kernel
 def label_above(smooth, threshold):  # pragma: no cover - compiled
     """8-connected components of ``smooth > threshold``: ``(n, labels, stats)`` like
     cv2.connectedComponentsWithStats.
@@ -286,26 +279,13 @@ def label_above(smooth, threshold):  # pragma: no cover - compiled
                 k += 1
             j = k
             while j < prev_end and run_x0[j] <= x:
-                ra, rb = _find(parent, j), _find(parent, r)
-                if ra != rb:
-                    if ra < rb:
-                        parent[rb] = ra
-                    else:
-                        parent[ra] = rb
+                union(parent, j, r)
                 j += 1
             if j > k:
                 k = j - 1  # the last touching run may touch the next run of this row too
         prev_start, prev_end = row_start, n_runs
     # Final labels: roots (the first run of each set, in raster order) numbered in order.
-    final = np.zeros(n_runs, dtype=np.int64)
-    n = 1
-    for r in range(n_runs):
-        root = _find(parent, r)
-        if root == r:
-            final[r] = n
-            n += 1
-        else:
-            final[r] = final[root]
+    final, n = number_sets(parent, n_runs)
     labels = np.zeros((h, w), dtype=np.int32)
     stats = np.zeros((n, 5), dtype=np.int64)
     for i in range(1, n):
