@@ -105,6 +105,15 @@ def _select_cache_dir() -> Path:
 CACHE_DIR = _select_cache_dir()
 
 
+def cache_is_warm() -> bool:
+    """True if kernels compiled from the current sources are on disk (the next warm-up takes seconds,
+    not the minute or two of a first compilation): commands use it to say why a start is slow."""
+    try:
+        return any(CACHE_DIR.rglob("*.nbi"))
+    except OSError:
+        return False
+
+
 def kernel(function: F) -> F:
     """Compile ``function`` in nopython mode, cached on disk, releasing the GIL (see the module docstring)."""
     return numba.njit(cache=True, nogil=True)(function)  # type: ignore[no-any-return]
@@ -119,7 +128,7 @@ def register_warm_up(module_name: str) -> None:
 def warm_up_all() -> float:
     """Compile (or load from the cache) every registered kernel; returns the seconds it took."""
     start = time.perf_counter()
-    for name in list(_WARM_UP_MODULES):
+    for name in _WARM_UP_MODULES:
         importlib.import_module(name).warm_up()
     elapsed = time.perf_counter() - start
     log.debug("compiled kernels ready in %.2f s", elapsed)

@@ -14,6 +14,7 @@ import sys
 import time
 from pathlib import Path
 from typing import Any
+
 from appliance.commands._common import positive_float
 
 NAME = "sim"
@@ -87,6 +88,11 @@ def run(args: argparse.Namespace) -> int:
     print(f"appliance sim: {session.source}: robot {config.robot.id}, {config.imaging.fps:g} fps "
           f"{config.imaging.image_size[0]}x{config.imaging.image_size[1]}, starting the simulated bench...",
           file=sys.stderr, flush=True)
+    from appliance.compiled import cache_is_warm
+
+    if not cache_is_warm():
+        print("appliance sim: compiling the recognition and control kernels (first run after an install or a "
+              "change; about a minute, cached afterwards)...", file=sys.stderr, flush=True)
     recorder = None
     try:
         with Simulation(session) as sim:
