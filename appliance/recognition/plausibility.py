@@ -17,7 +17,11 @@ from dataclasses import replace
 import numpy as np
 
 from appliance.geometry import Calibration
-from appliance.recognition.reconstruction import Reconstruction, axis_plane, ray_line_parameters
+from appliance.recognition.reconstruction import (
+    Reconstruction,
+    axis_plane,
+    ray_line_parameters,
+)
 from appliance.recognition.segmentation import Blob
 from appliance.recognition.settings import RecognitionSettings
 
@@ -28,13 +32,6 @@ _MIN_PLANE_SIN = 0.3
 #: ... and the cluttered view be cluttered this much (fraction of the robot's contrast): below it, its
 #: blob slides less than the noise of the clean view's ray depth, and the triangulated axis line is kept.
 _PLANE_CLUTTER = 0.2
-#: A rod whose 3D centroid and tips reproject worse than this (RMS px over both views) onto its images is
-#: not reported (see :func:`off_its_images`). Clean frames of the accuracy benchmark reproject <= 4.2 px
-#: (1024 px, 0.15 mm/px at the isocentre); to become ``RecognitionSettings.max_reprojection_px``.
-MAX_REPROJECTION_PX = 6.0
-#: Between consecutive tracked frames (33 ms at 30 fps) the rod's measured length changes by noise only:
-#: up to ~5 % on clean frames of the accuracy benchmark; a larger change is a blob cut or merged.
-MAX_LENGTH_CHANGE = 0.15
 #: The last calibration seen and, per view, its source position (mm) and focal length (px) as floats.
 _LAST_SCALARS: tuple[Calibration, dict[str, tuple[float, float, float, float]]] | None = None
 
@@ -137,7 +134,6 @@ def declutter(calibration: Calibration, rec: Reconstruction, blobs: dict[str, Bl
     across it are hardly affected. The clean view's centroid ray then fixes where along the axis
     the centroid is, provided that view sees the axis well away from end-on.
     """
-    s = settings
     d = rec.direction
     clean = _clean_view(calibration, rec, blobs, settings)
     if d is None or clean is None:
@@ -175,7 +171,7 @@ def off_its_images(calibration: Calibration, rec: Reconstruction, blobs: dict[st
     """Why the reconstructed rod cannot be trusted to the appliance's accuracy (None if it can).
 
     The 3D centroid and tips are re-projected into both views and compared with the 2D centroid and
-    ends they were made from. A rod that reprojects ``MAX_REPROJECTION_PX`` or more off its images is
+    ends they were made from. A rod that reprojects ``settings.max_reprojection_px`` or more off its images is
     not one rod seen twice: one view's blob runs on into a vessel or another structure, or its ends
     were mapped to the wrong 3D end. Its centroid may still be close, but nothing in the frame says
     whether it is (on the accuracy benchmark such frames are 0.03 to 1.0 mm off, against <= 0.1 mm
@@ -185,12 +181,12 @@ def off_its_images(calibration: Calibration, rec: Reconstruction, blobs: dict[st
     the centroid back (robot 6 at 384 px over the vessel: 7.2 px, 0.20 mm off after placement).
     The paper's estimator is left verbatim (its reprojection is that of its own triangulated tips).
     """
-    if settings.estimator == "paper" or rec.reprojection_px is None or rec.reprojection_px <= MAX_REPROJECTION_PX:
+    if settings.estimator == "paper" or rec.reprojection_px is None or rec.reprojection_px <= settings.max_reprojection_px:
         return None
     if _clean_view(calibration, rec, blobs, settings) is not None:
         return None
     return (f"the robot's centroid and ends reproject {rec.reprojection_px:.1f} px (RMS) off its images in view p "
-            f"and q (> {MAX_REPROJECTION_PX:g} px): the two blobs do not fit one rod (one likely runs on into "
+            f"and q (> {settings.max_reprojection_px:g} px): the two blobs do not fit one rod (one likely runs on into "
             f"another structure), so its position cannot be trusted to the appliance's accuracy")
 
 
@@ -199,7 +195,7 @@ def at_odds_with_track(rec: Reconstruction, blobs: dict[str, Blob], previous_dir
     """Why the reconstructed rod cannot be the tracked robot one frame later (None if it can be).
 
     A rigid robot keeps its length, and in one frame period it cannot turn its head round: a length
-    that jumps by more than ``MAX_LENGTH_CHANGE`` means one view's blob lost an end or ran on into a
+    that jumps by more than ``settings.max_length_change`` means one view's blob lost an end or ran on into a
     vessel (its tips, and with them the centroid's place along the axis, are off), and a head claim
     that points against the track's heading is a wrong claim from such an end. Both were seen where
     the ROI search follows a polymer robot over the vessel (seed 777, robot 3: length 19.0 -> 14.5 mm,
@@ -214,7 +210,7 @@ def at_odds_with_track(rec: Reconstruction, blobs: dict[str, Blob], previous_dir
         return None
     if previous_length_mm and rec.length_mm is not None:
         change = abs(rec.length_mm - previous_length_mm) / previous_length_mm
-        if change > MAX_LENGTH_CHANGE:
+        if change > settings.max_length_change:
             return (f"the robot's length changed from {previous_length_mm:.1f} to {rec.length_mm:.1f} mm in one "
                     f"frame: one view's blob lost an end or runs on into another structure")
     if rec.head_identified and rec.direction is not None and previous_direction is not None:

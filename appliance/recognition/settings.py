@@ -115,6 +115,15 @@ class RecognitionSettings(StrictModel):
     #: then do not fit one 3D line, so a view's end may be mapped to the wrong 3D end.
     head_doubt_reprojection_px: float = Field(3.0, gt=0)
 
+    #: A rod whose 3D centroid and tips reproject worse than this (RMS px over both views) onto its images
+    #: is lost, unless the clean view placed its centroid (plausibility.off_its_images). Clean frames of
+    #: the accuracy benchmark reproject <= 4.2 px (1024 px, 0.15 mm/px at the isocentre).
+    max_reprojection_px: float = Field(6.0, gt=0)
+    #: A doubtful frame (ambiguous, or over a vessel) whose length changes by more than this fraction
+    #: from the track's is lost: between frames 33 ms apart the length changes by noise only (<= ~5 % on
+    #: clean frames of the accuracy benchmark); more is a blob cut short or run on into a vessel.
+    max_length_change: float = Field(0.15, gt=0)
+
     #: A frame whose background under the robot varies by more than this fraction of the robot's
     #: contrast (overlap with a vessel, say) is flagged ambiguous: reduced accuracy.
     max_clutter: float = Field(0.15, gt=0)

@@ -15,7 +15,6 @@ import pytest
 from appliance.geometry import Calibration, View
 from appliance.recognition import RecognitionSettings
 from appliance.recognition.plausibility import (
-    MAX_REPROJECTION_PX,
     at_odds_with_track,
     cut_by_edge,
     not_robot_like,
@@ -115,7 +114,7 @@ def test_a_rod_reprojecting_more_than_a_few_pixels_off_its_images_is_not_reporte
         return SimpleNamespace(reprojection_px=reprojection_px, centroid=np.zeros(3), direction=up)
 
     clean = {"p": SimpleNamespace(clutter=0.0), "q": SimpleNamespace(clutter=0.0)}
-    assert off_its_images(calibration, rec(MAX_REPROJECTION_PX), clean, SETTINGS) is None
+    assert off_its_images(calibration, rec(SETTINGS.max_reprojection_px), clean, SETTINGS) is None
     assert off_its_images(calibration, rec(None), clean, SETTINGS) is None  # nothing to compare
     reason = off_its_images(calibration, rec(13.26), clean, SETTINGS)
     assert reason is not None and "reproject 13.3 px" in reason
