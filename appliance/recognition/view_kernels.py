@@ -75,18 +75,27 @@ def median_inplace(buf, n):  # pragma: no cover - compiled
 
 
 @kernel
+def _abs_row_differences(a):  # pragma: no cover - compiled
+    """``|a[:, x+1] - a[:, x]|`` of every row, flattened, in ``a``'s dtype (the noise statistics' sample)."""
+    h, w = a.shape
+    d = np.empty(h * (w - 1), dtype=a.dtype)
+    k = 0
+    for y in range(h):
+        row = a[y]
+        for x in range(w - 1):
+            d[k] = abs(row[x + 1] - row[x])
+            k += 1
+    return d
+
+
+@kernel
 def noise_sigma_of(a):  # pragma: no cover - compiled
     """Robust noise standard deviation from the median of ``|a[:, x+1] - a[:, x]|``; NaN if there is none."""
     h, w = a.shape
     if w < 2 or h == 0:
         return np.nan
     n = h * (w - 1)
-    d = np.empty(n, dtype=a.dtype)
-    k = 0
-    for y in range(h):
-        for x in range(w - 1):
-            d[k] = abs(a[y, x + 1] - a[y, x])
-            k += 1
+    d = _abs_row_differences(a)
     return 1.4826 * float(median_inplace(d, n)) / math.sqrt(2.0)
 
 
@@ -130,13 +139,7 @@ def noise_sigma_f32(a):  # pragma: no cover - compiled
     if w < 2 or h == 0:
         return np.nan
     n = h * (w - 1)
-    d = np.empty(n, dtype=np.float32)
-    k = 0
-    for y in range(h):
-        row = a[y]
-        for x in range(w - 1):
-            d[k] = abs(row[x + 1] - row[x])
-            k += 1
+    d = _abs_row_differences(a)
     bits = d.view(np.uint32)
     # Two histograms, alternating, so that runs of equal bins do not wait on each other's increments.
     hist = np.zeros((2, _N_BINS), dtype=np.int64)
