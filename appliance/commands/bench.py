@@ -4,8 +4,8 @@ pipeline and the memory floor (issue 8). Prints one table; ``--json FILE`` write
 The frame pairs come from the simulated fluoroscope (``drivers/loopback/xray_render.py``): the robot
 moves along the operator's path (``config/vessel.yaml``) at ``--speed`` mm/s inside a contrast-filled
 vessel, seen by the two planes of ``config/sim.yaml``'s geometry (plane q 15 deg elevated, both
-turned -45 deg), with quantum noise, blur and a non-uniform field. Each pair is rendered, then
-measured (see :mod:`appliance.benchmarking`); the amplifier command goes to the loopback amplifier
+turned -45 deg), with quantum noise, blur and a non-uniform field. The pairs are rendered a chunk at a
+time, untimed, then each arrives in host buffers and is measured (see :mod:`appliance.benchmarking`); the amplifier command goes to the loopback amplifier
 served on a pseudo-terminal by a separate process, as a real amplifier is a separate device: served
 from a thread of this process instead (``--amplifier-in-process``), its polling competes with the loop
 for the GIL and a write can wait milliseconds for it to be handed back. This module builds the fakes
@@ -215,6 +215,9 @@ def measure(frames: int = 300, size: int = 1024, robot_id: int = 1, speed_mm_s: 
         result.notes.append("amplifier: the loopback amplifier on a pty, served by "
                             + ("a thread of this process (shares the GIL with the loop)" if amplifier_in_process
                                else "its own process, as a real amplifier is a separate device"))
+    result.notes.append("frames: rendered ahead, untimed; before each measured pair, the pair arrives in the host's "
+                        "frame buffers by np.copyto (the memory floor, 8 MB of cache traffic per 1024^2 pair, as a "
+                        "grabber's DMA), so every stage starts on the caches a new frame leaves")
     result.notes.append("loop = frame available -> SET_CURRENTS written to the pty (ROI recognition, control, "
                         "allocation, the driver's limit check and encoding, the write call); the line's transfer "
                         "and the acknowledgement are not in it ('amplifier: acked' is the round trip)")
