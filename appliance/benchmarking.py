@@ -49,7 +49,14 @@ import cv2
 import numpy as np
 
 from appliance.compiled import warm_up_all
-from appliance.control import ActuationModel, CurrentAllocator, PathFollower, SafetySupervisor, load_coils, load_path
+from appliance.control import (
+    ActuationModel,
+    CurrentAllocator,
+    PathFollower,
+    SafetySupervisor,
+    load_coils,
+    load_path,
+)
 from appliance.geometry import Calibration
 from appliance.recognition import PostureTracker, RecognitionSettings
 

@@ -29,11 +29,15 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from appliance.commands.bench import RenderedScene  # noqa: E402
-from appliance.compiled import kernel, warm_up_all  # noqa: E402
-from appliance.recognition import PostureTracker, RecognitionSettings  # noqa: E402
-from appliance.recognition import segmentation, view_kernels  # noqa: E402
-from appliance.recognition import tracker as tracker_module  # noqa: E402
+from appliance.commands.bench import RenderedScene
+from appliance.compiled import kernel, warm_up_all
+from appliance.recognition import (
+    PostureTracker,
+    RecognitionSettings,
+    segmentation,
+    view_kernels,
+)
+from appliance.recognition import tracker as tracker_module
 
 
 @kernel
