@@ -274,7 +274,7 @@ def _open_simulation(session: Session, robot: RobotSpec, coils: Any, stack: cont
     bench_sim.scene = scene
     xray = config.devices.xray
     if xray.link == "usb":
-        backend = make_usb_backend(scene, realtime=True, seed=sim.seed, clock=clock, sleep=clock.sleep)
+        backend = make_usb_backend(scene, realtime=True, seed=sim.seed, clock=clock.released, sleep=clock.sleep)
         urls = {plane: _LOOPBACK_USB.format(vid=usb_proto.VENDOR_ID, pid=usb_proto.PRODUCT_ID,
                                             plane=plane, plane_upper=plane.upper()) for plane in ("p", "q")}
         sources = {plane: open_source(url, backend=backend) for plane, url in urls.items()}
@@ -282,7 +282,8 @@ def _open_simulation(session: Session, robot: RobotSpec, coils: Any, stack: cont
     else:
         urls = {plane: f"loopback grabber, plane {plane}" for plane in ("p", "q")}
         # Each plane its own random stream: drops and jitter must not be identical on p and q.
-        sources = {plane: LoopbackFrameSource(scene, plane, clock=clock, sleep=clock.sleep, seed=sim.seed + index)
+        sources = {plane: LoopbackFrameSource(scene, plane, clock=clock.released, sleep=clock.sleep,
+                                              seed=sim.seed + index)
                    for index, plane in enumerate(("p", "q"))}
     bench_sim.frame_sources = sources
     # Started at simulated t = 0, so the grabbers' exposure clock is the world's clock.

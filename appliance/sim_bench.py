@@ -27,11 +27,21 @@ class SimClock:
 
     ``sleep`` lets a fake that polls for "time to pass" (a grabber waiting for its next exposure) wake as
     soon as the harness advances the clock, instead of sleeping the simulated interval in real time.
+
+    The X-ray grabbers see the clock through :attr:`released` (:meth:`released_now`, :meth:`sleep`): while
+    the harness steps the world inside :meth:`hold`, that reading stands still and moves to the end of the
+    step only when the step is done. On a bench the world moves on its own, in parallel with the host; here
+    it moves in the host's process, between frames, so a frame put on the host in the middle of a step
+    would wait for the rest of the step (up to ``loop_latency_ms`` of simulated time, tens of ms of wall
+    time) and that wait would be counted as the appliance's loop latency.
     """
 
     def __init__(self, start_s: float = 0.0) -> None:
         self._t = float(start_s)
+        self._released = self._t
+        self._holds = 0
         self._cond = threading.Condition()
+        self.released = _ReleasedClock(self)
 
     def __call__(self) -> float:
         return self._t
@@ -39,19 +49,50 @@ class SimClock:
     def now(self) -> float:
         return self._t
 
+    def released_now(self) -> float:
+        """The time the grabbers see: ``now()``, except that it stands still inside :meth:`hold`."""
+        return self._released
+
     def advance(self, dt_s: float) -> float:
         if not dt_s >= 0.0:
             raise ValueError(f"simulated time only moves forward, got dt {dt_s}")
         with self._cond:
             self._t += dt_s
-            self._cond.notify_all()
+            if not self._holds:
+                self._released = self._t
+                self._cond.notify_all()
             return self._t
 
-    def sleep(self, seconds: float) -> None:
-        """Wait until the clock has advanced ``seconds``, or at most ``seconds`` of real time."""
+    @contextlib.contextmanager
+    def hold(self) -> Iterator[None]:
+        """While inside, :attr:`released` does not move; on leaving it jumps to ``now()`` and wakes sleepers."""
         with self._cond:
-            target = self._t + seconds
-            self._cond.wait_for(lambda: self._t >= target, timeout=max(seconds, 0.0))
+            self._holds += 1
+        try:
+            yield
+        finally:
+            with self._cond:
+                self._holds -= 1
+                if not self._holds:
+                    self._released = self._t
+                    self._cond.notify_all()
+
+    def sleep(self, seconds: float) -> None:
+        """Wait until the released clock has advanced ``seconds``, or at most ``seconds`` of real time."""
+        with self._cond:
+            target = self._released + seconds
+            self._cond.wait_for(lambda: self._released >= target, timeout=max(seconds, 0.0))
+
+
+class _ReleasedClock:
+    """The clock as the X-ray grabbers see it (see :class:`SimClock`): callable, with ``sleep``."""
+
+    def __init__(self, clock: SimClock) -> None:
+        self._clock = clock
+        self.sleep = clock.sleep
+
+    def __call__(self) -> float:
+        return self._clock.released_now()
 
 
 @dataclass
@@ -127,7 +168,7 @@ class SimBench:
 
     def step(self, dt_s: float) -> None:
         """Advance world and clock by ``dt_s``, in substeps each holding the amplifier's MEASURED currents."""
-        with self._step_lock:
+        with self._step_lock, self.clock.hold():
             remaining = dt_s
             while remaining > 1e-12:
                 h = min(self.substep_s, remaining)
