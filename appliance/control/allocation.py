@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -36,6 +36,7 @@ from appliance.control.actuation import (
     _field_and_gradient,
     _force_rows,
 )
+from appliance.control.kernel_args import float_vector
 
 logger = logging.getLogger(__name__)
 
@@ -46,9 +47,9 @@ _GRADIENT_UNIT_T_M = 1e-2
 _LIMITED_BY: tuple[str | None, ...] = (None, "current", "power", "slew", "slew-ramp")
 
 
-@dataclass(frozen=True)
-class Allocation:
-    """Currents to command and what they achieve according to the configured model."""
+class Allocation(NamedTuple):
+    """Currents to command and what they achieve according to the configured model (an immutable
+    named tuple: built every frame, and cheaper to build than a frozen dataclass)."""
 
     currents_a: FloatArray
     scale: float                  # 1.0 = request fully met; < 1: the whole request was scaled by it
@@ -105,20 +106,20 @@ class CurrentAllocator:
         ``previous_a`` are the currents now commanded and ``dt_s`` the time until the new ones take
         effect (slew budget = max_slew_a_per_s * dt_s).
         """
-        # Fresh float64 copies (a read-only or strided argument would make the kernel compile again),
-        # and one kernel call from the actuation matrices to the currents: after a frame's recognition
-        # has cycled the caches, every Python-level call here costs ~20 us, not the ~1 us of a warm loop.
-        request = np.concatenate((field_T, force_N, moment_Am2), axis=None, dtype=np.float64)
-        position = np.array(position_mm, dtype=np.float64).reshape(-1)
-        previous = np.array(previous_a, dtype=np.float64).reshape(-1)
-        if request.size != 9 or position.size != 3 or previous.size != self.model.n:
-            raise ValueError(f"position, field, force and moment need 3 values each and previous_a {self.model.n}")
+        # One array of position, field, force and moment, the previous currents as they are when they
+        # fit the kernel (a read-only or strided argument would make it compile again), and one kernel
+        # call from the actuation matrices to the currents: after a frame's recognition has cycled the
+        # caches, every Python-level or numpy call here costs ~10-20 us, not the ~1 us of a warm loop.
+        request = np.concatenate((position_mm, field_T, force_N, moment_Am2), axis=None, dtype=np.float64)
+        if request.size != 12:
+            raise ValueError(f"position, field, force and moment need 3 values each, got {request.size} in all")
+        previous = float_vector(previous_a, self.model.n, "previous_a")
         if not dt_s > 0.0:
             raise ValueError(f"dt_s must be positive, got {dt_s}")
         finite, currents, scale, code, achieved_field, achieved_force, residual = _allocate_at(
-            *self.model.loops, position, request, previous, float(dt_s), self._limits, self.max_power_w, self.rcond)
+            *self.model.loops, request, previous, float(dt_s), self._limits, self.max_power_w, self.rcond)
         if not finite:
-            raise ValueError("field, force and moment must be finite")
+            raise ValueError("position, field, force and moment must be finite")
         limited_by = _LIMITED_BY[code]
         if limited_by is not None:
             logger.debug("allocation limited by %s (scale %.3f)", limited_by, scale)
@@ -127,19 +128,19 @@ class CurrentAllocator:
 
 @kernel
 def _allocate_at(centres: FloatArray, axes: FloatArray, radii: FloatArray, turns: FloatArray,
-                 owner: NDArray[np.int64], position_mm: FloatArray, request: FloatArray, previous: FloatArray,
+                 owner: NDArray[np.int64], request: FloatArray, previous: FloatArray,
                  dt_s: float, limits: FloatArray, max_power_w: float, rcond: float
                  ) -> tuple[bool, FloatArray, float, int, FloatArray, FloatArray, float]:
-    """:meth:`CurrentAllocator.allocate` in one call: ``request`` is field (T), force (N), moment (A m^2);
-    ``limits`` rows are max current, max slew and resistance. The first value is False (and nothing
-    computed) when the request is not finite."""
+    """:meth:`CurrentAllocator.allocate` in one call: ``request`` is position (mm), field (T), force (N),
+    moment (A m^2); ``limits`` rows are max current, max slew and resistance. The first value is False
+    (and nothing computed) when the request is not finite."""
     n = limits.shape[1]
     for value in request:
         if not math.isfinite(value):
             return False, np.zeros(n), 0.0, 0, np.zeros(3), np.zeros(3), 0.0
-    b_per_amp, gradient = _field_and_gradient(centres, axes, radii, turns, owner, n, position_mm * 1e-3, _FD_STEP_M)
+    b_per_amp, gradient = _field_and_gradient(centres, axes, radii, turns, owner, n, request[0:3] * 1e-3, _FD_STEP_M)
     currents, scale, code, achieved_field, achieved_force, residual = _allocate(
-        b_per_amp, gradient, request[0:3], request[3:6], request[6:9], previous, dt_s, limits[0], limits[1],
+        b_per_amp, gradient, request[3:6], request[6:9], request[9:12], previous, dt_s, limits[0], limits[1],
         max_power_w, limits[2], rcond)
     return True, currents, scale, code, achieved_field, achieved_force, residual
 
@@ -299,7 +300,7 @@ def warm_up() -> None:
     b_per_amp = np.array([[1e-3, 0.0], [0.0, 1e-3], [0.0, 0.0]])
     loops = (np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]), np.array([0.05]), np.array([1.0]),
              np.array([0], dtype=np.int64))
-    _allocate_at(*loops, np.array([0.0, 0.0, 1.0]), np.concatenate((unit, np.zeros(3), unit)), np.zeros(1), 0.01,
+    _allocate_at(*loops, np.concatenate((np.array([0.0, 0.0, 1.0]), unit, np.zeros(3), unit)), np.zeros(1), 0.01,
                  np.ones((3, 1)), 1.0, 1e-9)
     _solve(b_per_amp, np.zeros((3, 2)), unit, np.zeros(3), 1e-3, 1e-9)
     _projection(np.ones((6, 2)), ones, ones)

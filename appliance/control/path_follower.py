@@ -33,8 +33,8 @@ simulated truth.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -43,6 +43,7 @@ from scipy.interpolate import CubicSpline
 
 from appliance.compiled import kernel, register_warm_up
 from appliance.config_io import StrictModel, config_path, read_yaml, validate_model
+from appliance.control.kernel_args import float_vector
 from appliance.errors import ConfigError
 
 FloatArray = NDArray[np.float64]
@@ -78,9 +79,12 @@ class FollowerSettings(StrictModel):
         return self
 
 
-@dataclass(frozen=True)
-class Command:
-    """What the follower asks of the coils this frame, and where it thinks the robot is on the path."""
+class Command(NamedTuple):
+    """What the follower asks of the coils this frame, and where it thinks the robot is on the path.
+
+    An immutable named tuple rather than a frozen dataclass: built once per frame, and a frozen
+    dataclass's ``__init__`` (one ``object.__setattr__`` per field) costs several times a tuple's.
+    """
 
     field_T: FloatArray
     force_N: FloatArray
@@ -193,9 +197,9 @@ class PathFollower:
 
     def command(self, posture_centroid_mm: ArrayLike, direction: ArrayLike, t_s: float) -> Command:
         """Field and force for this frame from the tracked centroid and axis at time ``t_s``."""
-        # Fresh copies: a read-only or strided array (a view into a posture) would compile the kernel again.
-        p = np.array(posture_centroid_mm, dtype=np.float64).reshape(3)
-        axis = np.array(direction, dtype=np.float64).reshape(3)
+        # Copies only of what the kernel was not compiled for (a read-only or strided view into a posture).
+        p = float_vector(posture_centroid_mm, 3, "posture_centroid_mm")
+        axis = float_vector(direction, 3, "direction")
         field, force, velocity, nearest, cross_track, progress, done, s = _follow(
             self.points, self.s, self._tangents, self._settings, self._state, p, axis, float(t_s))
         return Command(field, force, cross_track, progress, done, velocity, s, nearest)
