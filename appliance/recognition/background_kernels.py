@@ -11,7 +11,8 @@ cheap and the per-pixel work that numpy would spread over dozens of calls is one
   ``log(max(mean - dark, 1))`` read from a table of the 65536 gray levels (a table read is several
   times cheaper than a logarithm); the ``f = 4`` variant (the default scale) adds whole 64-bit words;
 * :func:`median_abs_step` - the median absolute difference of horizontal neighbours on a row
-  subsample (the robust noise estimate), by radix selection instead of a sort;
+  subsample (the robust noise estimate), by radix selection instead of a sort, and not at all when a
+  count shows it below the level that could matter to the caller;
 * :func:`coarse_components` - threshold, 8-connected components (unions of row runs) and, per
   component, its area, bounding box, peak and the bounding box of its strong core.
 
@@ -136,10 +137,15 @@ def _kth_smallest(bits: np.ndarray, k: int) -> np.uint32:  # pragma: no cover
 
 
 @kernel
-def median_abs_step(a: np.ndarray, row_step: int) -> float:  # pragma: no cover
-    """Median of ``|a[y, x + 1] - a[y, x]|`` over every ``row_step``-th row, as ``np.median`` gives it
-    (the mean of the two middle values for an even count; NaN if there is no difference or one is
-    not finite)."""
+def median_abs_step(a: np.ndarray, row_step: int, low: float) -> float:  # pragma: no cover
+    """``max(low, m)`` with ``m`` the median of ``|a[y, x + 1] - a[y, x]|`` over every ``row_step``-th row
+    as ``np.median`` gives it (the mean of the two middle values for an even count); NaN if there is
+    no difference or one is not finite.
+
+    A caller that only needs the median when it exceeds ``low`` (detection: noise below the signal
+    floor does not change the threshold) gets ``low`` from a count made while the differences are
+    taken, when more than half of them are at most ``low``; the selection runs only otherwise.
+    """
     h, w = a.shape
     rows = (h + row_step - 1) // row_step
     n = rows * (w - 1)
@@ -147,10 +153,13 @@ def median_abs_step(a: np.ndarray, row_step: int) -> float:  # pragma: no cover
         return np.nan
     d = np.empty(n, dtype=np.float32)
     k = 0
+    at_most_low = 0
     for y in range(0, h, row_step):
         row = a[y]
         for x in range(w - 1):
-            d[k + x] = abs(row[x + 1] - row[x])
+            step = abs(row[x + 1] - row[x])
+            d[k + x] = step
+            at_most_low += step <= low
         k += w - 1
     bits = d.view(np.uint32)
     largest = np.uint32(0)
@@ -159,6 +168,8 @@ def median_abs_step(a: np.ndarray, row_step: int) -> float:  # pragma: no cover
         largest = max(largest, b)
     if largest >= np.uint32(0x7F800000):   # an infinity or a NaN
         return np.nan
+    if at_most_low >= n // 2 + 1:   # both middle values (one if n is odd) are at most low
+        return low
     lower = _kth_smallest(bits, (n - 1) // 2)
     if n % 2:
         upper = lower
@@ -173,7 +184,7 @@ def median_abs_step(a: np.ndarray, row_step: int) -> float:  # pragma: no cover
                 above = min(above, b)
         upper = lower if at_most > n // 2 else above
     pair = np.array([lower, upper], dtype=np.uint32).view(np.float32)
-    return float((pair[0] + pair[1]) / np.float32(2.0))
+    return max(low, float((pair[0] + pair[1]) / np.float32(2.0)))
 
 
 @kernel
@@ -293,7 +304,7 @@ def warm_up() -> None:
     for frame in (image, frozen):
         block_mean_log(frame, 4, table, small)
         block_mean_log_4(frame.view(np.uint64), table, small)
-    median_abs_step(small, 2)
+    median_abs_step(small, 2, 0.0)
     coarse_components(small, 0.5, 0.5, np.zeros((2, 2), dtype=np.int32))
     coarse_components(small, 0.5, 0.5, np.zeros((0, 0), dtype=np.int32))
 

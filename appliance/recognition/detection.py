@@ -56,15 +56,20 @@ def coarse_windows(background: LogBackground, settings: RecognitionSettings) -> 
     """
     # (float32 C-contiguous, the kernels' compiled signature, whoever built the background.)
     a = np.ascontiguousarray(background.coarse_attenuation, dtype=np.float32)
-    # The robust noise from neighbour differences (edges are too few to matter) on every fourth row:
-    # still some 16000 differences (1 % standard error) on the 1024 px detector's coarse grid.
-    sigma = 1.4826 * background_kernels.median_abs_step(a, 4) / math.sqrt(2.0)
-    if not np.isfinite(sigma) or sigma <= 0:
-        sigma = 1e-3
     # The coarse image is the area mean, not the blur, of the full one: its noise is sigma itself, and a
     # thin robot's peak is diluted by the averaging (hence half the full-resolution floor).
     floor = 0.5 * settings.min_peak_attenuation
-    threshold = max(settings.detect_sigma * sigma, settings.core_fraction * floor)
+    least = settings.core_fraction * floor
+    # The robust noise from neighbour differences (edges are too few to matter) on every fourth row:
+    # still some 16000 differences (1 % standard error) on the 1024 px detector's coarse grid. Below
+    # `quiet` (a little under the median at which detect_sigma * sigma reaches `least`) the threshold is
+    # `least` whatever the median is, and the kernel skips the selection (at the simulated dose the
+    # noise term is ~0.43 of it).
+    quiet = 0.999 * least / settings.detect_sigma * math.sqrt(2.0) / 1.4826
+    sigma = 1.4826 * background_kernels.median_abs_step(a, 4, quiet) / math.sqrt(2.0)
+    if not np.isfinite(sigma) or sigma <= 0:
+        sigma = 1e-3
+    threshold = max(settings.detect_sigma * sigma, least)
     stats, peaks = background_kernels.coarse_components(a, threshold, settings.core_fraction, _NO_LABELS)
     labels: np.ndarray | None = None
     order = np.argsort(-stats[1:, background_kernels.STAT_AREA], kind="stable")[:MAX_CANDIDATES * 3] + 1

@@ -65,17 +65,23 @@ def test_median_abs_step_equals_numpy(shape: tuple[int, int], step: int) -> None
             a = np.round(a, 2).astype(np.float32)
         if trial % 5 == 0:
             a[:, : shape[1] // 2] = 9.0   # zero differences: the median may be an exact 0
-        expected = float(np.median(np.abs(np.diff(a[::step], axis=1))))
-        assert kernels.median_abs_step(a, step) == expected
+        steps = np.abs(np.diff(a[::step], axis=1))
+        expected = float(np.median(steps))
+        assert kernels.median_abs_step(a, step, -np.inf) == expected
+        # Given a level that matters, max(level, median): whether the count settles it (most steps at or
+        # below the level) or the selection runs, at the steps' own values (ties) and between them.
+        for low in (0.0, float(np.min(steps)), float(np.quantile(steps, 0.3)), expected,
+                    float(np.float32(expected) + np.float32(1e-6)), float(np.quantile(steps, 0.7)), 1.0):
+            assert kernels.median_abs_step(a, step, low) == max(low, expected), (low, expected)
 
 
 def test_median_abs_step_has_no_answer_for_nothing_or_a_non_finite_value() -> None:
-    assert np.isnan(kernels.median_abs_step(np.zeros((4, 1), np.float32), 1))
+    assert np.isnan(kernels.median_abs_step(np.zeros((4, 1), np.float32), 1, 0.0))
     a = np.zeros((4, 6), np.float32)
     a[2, 3] = np.inf
-    assert np.isnan(kernels.median_abs_step(a, 1))
+    assert np.isnan(kernels.median_abs_step(a, 1, 0.5))   # even though most steps are below the level
     a[2, 3] = np.nan
-    assert np.isnan(kernels.median_abs_step(a, 1))
+    assert np.isnan(kernels.median_abs_step(a, 1, 0.5))
 
 
 def test_coarse_components_match_opencv_and_the_core_boxes() -> None:
