@@ -17,10 +17,14 @@ from dataclasses import dataclass, field
 from typing import ClassVar, Union
 
 from firmware_protocol.amplifier_framing import (
+    DELIMITER,
+    HEADER_SIZE,
     PROTOCOL_VERSION,
     REJECT_REASONS,
     Frame,
     FrameDecoder,
+    cobs_encode,
+    crc16_ccitt_false,
     encode_frame,
 )
 from firmware_protocol.errors import FrameError
@@ -218,6 +222,7 @@ _U8 = struct.Struct("<B")
 _I32_VECTORS = {n: struct.Struct(f"<{n}i") for n in range(1, MAX_CHANNELS + 1)}
 _I32 = struct.Struct("<i")
 _MSG_TYPES = {int(kind): kind for kind in MsgType}
+_SET_CURRENTS_TYPE = int(MsgType.SET_CURRENTS)
 _STATE_FAULTS = struct.Struct("<BI")
 _HELLO_HEAD = struct.Struct("<BBBBIHh")       # channels, fw major/minor/patch, serial, watchdog_ms, over_temp_dc
 _HELLO_CHANNEL = struct.Struct("<III")        # rated_ma, max_ma, slew_ma_per_s
@@ -280,6 +285,25 @@ def encode_payload(msg: Message) -> bytes:
 def encode_message(msg: Message, seq: int) -> bytes:
     """The complete frame on the wire for ``msg`` with sequence number ``seq``."""
     return encode_frame(Frame(msg_type=msg.TYPE, seq=seq, payload=encode_payload(msg)))
+
+
+# SET_CURRENTS packets without the CRC, by channel count: header (version, type, seq, payload length),
+# then the payload (channel count, int32 currents), packed by one compiled struct.
+_SET_CURRENTS_PACKETS = {n: struct.Struct(f"<BBHBB{n}i") for n in range(1, MAX_CHANNELS + 1)}
+_CRC = struct.Struct("<H")
+
+
+def encode_set_currents(currents_ma: tuple[int, ...] | list[int], seq: int) -> bytes:
+    """``encode_message(SetCurrents(currents_ma=tuple(currents_ma)), seq)``, byte for byte, without the
+    message object, the Frame and the generic payload dispatch: the driver's path from the allocated
+    currents to the write (issue 8). Raises ValueError (channel count) or struct.error (a value or
+    ``seq`` that does not fit its field)."""
+    n = len(currents_ma)
+    layout = _SET_CURRENTS_PACKETS.get(n)
+    if layout is None:
+        raise ValueError(f"{n} channels; the protocol carries 1..{MAX_CHANNELS}")
+    body = layout.pack(PROTOCOL_VERSION, _SET_CURRENTS_TYPE, seq, layout.size - HEADER_SIZE, n, *currents_ma)
+    return DELIMITER + cobs_encode(body + _CRC.pack(crc16_ccitt_false(body))) + DELIMITER
 
 
 def _unpack_channels(payload: bytes, offset: int, n: int, layout: struct.Struct) -> list[tuple[int, ...]]:
@@ -430,6 +454,6 @@ __all__ = [
     "PROTOCOL_VERSION", "MAX_CHANNELS", "MsgType", "State", "Fault", "NakReason", "Hello", "Enable", "Disable",
     "Heartbeat", "GetStatus", "ClearFault", "SetCurrents", "ConfigureLimits", "HelloReply", "SetCurrentsReply",
     "Status", "Ack", "Nak", "Message", "REQUESTS", "REPLIES", "MESSAGE_CLASSES", "PayloadError",
-    "UnknownTypeError", "encode_payload", "encode_message", "decode_payload", "Envelope", "MessageDecoder",
-    "seq_newer", "MESSAGE_REJECT_REASONS",
+    "UnknownTypeError", "encode_payload", "encode_message", "encode_set_currents", "decode_payload", "Envelope",
+    "MessageDecoder", "seq_newer", "MESSAGE_REJECT_REASONS",
 ]

@@ -135,6 +135,26 @@ def test_set_currents_sends_milliamps_and_returns_measured() -> None:
     port.assert_done()
 
 
+def test_every_form_of_the_vector_puts_the_same_bytes_on_the_wire() -> None:
+    """A list, a float64 array, an int array and a strided view: the same SET_CURRENTS frame (built by
+    the driver's own encoder) and the same result arrays."""
+    values = [(1.5, -0.25, 0.0), np.array([1.5, -0.25, 0.0]), np.array([[1.5, 9.0], [-0.25, 9.0], [0.0, 9.0]])[:, 0],
+              np.array([2, -1, 0])]
+    script = connect() + [(encode_message(Enable(), 3), ack(MsgType.ENABLE, 3))]
+    for seq, vector in enumerate(values, start=4):
+        ma = tuple(int(v * 1000.0) for v in np.asarray(vector, float))
+        script.append((encode_message(SetCurrents(ma), seq),
+                       encode_message(SetCurrentsReply(State.ENABLED, Fault.NONE, 0, ma), seq)))
+    amp, port = open_amp(script)
+    amp.enable()
+    for vector in values:
+        result = amp.set_currents(vector)
+        assert result.requested_a.dtype == np.float64 and result.commanded_a.dtype == np.float64
+        np.testing.assert_array_equal(result.requested_a, np.asarray(vector, float))
+        np.testing.assert_array_equal(result.commanded_a, result.measured_a)
+    port.assert_done()
+
+
 def test_a_vector_over_the_limit_is_scaled_as_a_whole() -> None:
     # 20 A on channel 0 against a 10 A limit: every channel halves, the direction is kept.
     request = encode_message(SetCurrents((10000, -3000, 500)), 4)

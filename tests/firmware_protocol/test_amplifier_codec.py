@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import random
+import struct
 from pathlib import Path
 
 import pytest
@@ -33,6 +34,7 @@ from firmware_protocol.amplifier import (
     Status,
     decode_payload,
     encode_message,
+    encode_set_currents,
     seq_newer,
 )
 from firmware_protocol.amplifier_framing import (
@@ -173,6 +175,29 @@ def test_message_vectors_both_ways(vector: dict) -> None:
     assert cobs_decode(wire[1:-1]) == bytes.fromhex(vector["packet_hex"])
     (env,) = MessageDecoder().feed(wire)
     assert (env.message, env.seq) == (message, vector["seq"])
+
+
+@given(channels.flatmap(lambda n: vec(n, i32)), u16)
+@settings(max_examples=300)
+def test_the_drivers_set_currents_encoder_writes_the_same_bytes(currents: tuple[int, ...], seq: int) -> None:
+    expected = encode_message(SetCurrents(currents_ma=currents), seq)
+    assert encode_set_currents(currents, seq) == expected
+    assert encode_set_currents(list(currents), seq) == expected
+
+
+def test_the_set_currents_encoder_matches_the_vector_file_and_refuses_what_does_not_fit() -> None:
+    vectors = [v for v in VECTORS["messages"] if v["type"] == "SET_CURRENTS"]
+    assert vectors
+    for vector in vectors:
+        assert encode_set_currents(vector["fields"]["currents_ma"], vector["seq"]) == bytes.fromhex(vector["wire_hex"])
+    with pytest.raises(ValueError, match="channels"):
+        encode_set_currents((), 1)
+    with pytest.raises(ValueError, match="channels"):
+        encode_set_currents((0,) * (MAX_CHANNELS + 1), 1)
+    with pytest.raises(struct.error):
+        encode_set_currents((2 ** 31,), 1)
+    with pytest.raises(struct.error):
+        encode_set_currents((0,), 0x10000)
 
 
 @pytest.mark.parametrize("case", VECTORS["cobs"], ids=lambda c: c["encoded_hex"][:20])
