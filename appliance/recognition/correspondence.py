@@ -81,8 +81,12 @@ def centroid_distances(G: np.ndarray, F: np.ndarray, uv_p: np.ndarray, uv_q: np.
         for j in range(m):
             uq, vq = ideal_q[j, 0], ideal_q[j, 1]
             a2, b2, c2 = F[0] * uq + F[3] * vq + F[6], F[1] * uq + F[4] * vq + F[7], F[2] * uq + F[5] * vq + F[8]
+            norm2 = math.hypot(a2, b2)
+            if norm == 0.0 or norm2 == 0.0:
+                d[i, j] = math.nan   # a pixel at its view's epipole: no epipolar line
+                continue
             d_q = (a * uq + b * vq + c) / norm
-            d_p = (a2 * up + b2 * vp + c2) / math.hypot(a2, b2)
+            d_p = (a2 * up + b2 * vp + c2) / norm2
             d[i, j] = math.sqrt((d_p * d_p + d_q * d_q) / 2.0)
     return d
 
@@ -119,7 +123,7 @@ def warm_up() -> None:
     """Compile :func:`centroid_distances` (see :mod:`appliance.compiled`)."""
     G = np.zeros(2 * VIEW_SIZE + 10)
     G.setflags(write=False)   # as Calibration.packed hands it over
-    centroid_distances(G, np.eye(3).ravel(), np.zeros((1, 2)), np.ones((2, 2)))
+    centroid_distances(G, np.eye(3).ravel(), np.ones((1, 2)), np.zeros((2, 2)))
 
 
 register_warm_up(__name__)

@@ -66,3 +66,15 @@ def test_no_candidates_or_none_in_the_band_give_no_pair() -> None:
     # 50 px across the epipolar line (the line through c_q is far from vertical here).
     lines_off = (float(c_q[0]), float(c_q[1]) + 50.0)
     assert pair_candidates(calibration, F, [c_p], [lines_off], [1.0], [1.0], 6.0) == []
+
+
+def test_the_kernel_warms_up_and_a_centroid_at_the_epipole_pairs_with_nothing() -> None:
+    from appliance.recognition import correspondence
+
+    correspondence.warm_up()   # what warm_up_all runs before the first frame
+    calibration = _calibration((0, 0, 0, 0, 0), (0, 0, 0, 0, 0))
+    # F's own right null vector is p's epipole: its line in q is undefined, its distance NaN.
+    F = np.eye(3)
+    assert np.isnan(correspondence.centroid_distances(calibration.packed, F.ravel(), np.zeros((1, 2)),
+                                                      np.ones((1, 2)))).all()
+    assert pair_candidates(calibration, F, [(0.0, 0.0)], [(1.0, 1.0)], [1.0], [1.0], 6.0) == []
