@@ -159,12 +159,33 @@ def _solve(b_per_amp: FloatArray, f_per_amp: FloatArray, field_t: FloatArray, fo
             a[3 + i, k] = f_per_amp[i, k] / force_unit
         y[i] = field_t[i] / _FIELD_UNIT_T
         y[3 + i] = force_n[i] / force_unit
-    size = math.sqrt(np.sum(y * y))
+    size = math.sqrt(_dot(y, y))
     if size < 1e-12:   # below 1 pT and 1e-14 |m| T/m: nothing to do
         return np.zeros(n), 0.0, a
     currents = _min_norm_solution(a, y, rcond)
-    error = a @ currents - y
-    return currents, math.sqrt(np.sum(error * error)) / size, a
+    error = _matvec(a, currents) - y
+    return currents, math.sqrt(_dot(error, error)) / size, a
+
+
+@kernel
+def _matvec(a: FloatArray, x: FloatArray) -> FloatArray:
+    """``a @ x`` for the allocator's 3 x n and 6 x n matrices, by loops: numba's ``@`` calls BLAS (gemv),
+    whose first call after a frame's recognition has cycled the caches costs tens of microseconds."""
+    out = np.zeros(a.shape[0])
+    for i in range(a.shape[0]):
+        total = 0.0
+        for k in range(a.shape[1]):
+            total += a[i, k] * x[k]
+        out[i] = total
+    return out
+
+
+@kernel
+def _dot(x: FloatArray, y: FloatArray) -> float:
+    total = 0.0
+    for k in range(x.shape[0]):
+        total += x[k] * y[k]
+    return total
 
 
 @kernel
@@ -238,7 +259,7 @@ def _allocate(b_per_amp: FloatArray, gradient: FloatArray, field_t: FloatArray, 
     n = b_per_amp.shape[1]
     f_per_amp = _force_rows(gradient, moment)
     ideal, residual, normalised = _solve(b_per_amp, f_per_amp, field_t, force_n,
-                                         math.sqrt(np.sum(moment * moment)), rcond)
+                                         math.sqrt(_dot(moment, moment)), rcond)
 
     scale, code = 1.0, 0
     s_current, power = math.inf, 0.0
@@ -283,15 +304,15 @@ def _allocate(b_per_amp: FloatArray, gradient: FloatArray, field_t: FloatArray, 
     # Rounding guard only (s was chosen so that these hold exactly in real arithmetic).
     for k in range(n):
         currents[k] = min(max(currents[k], -max_current_a[k]), max_current_a[k])
-    return currents, scale, code, b_per_amp @ currents, f_per_amp @ currents, residual
+    return currents, scale, code, _matvec(b_per_amp, currents), _matvec(f_per_amp, currents), residual
 
 
 @kernel
 def _projection(normalised: FloatArray, currents: FloatArray, ideal: FloatArray) -> float:
     """How much of the request the ramped currents deliver (projection in normalised units)."""
-    wanted = normalised @ ideal
-    norm2 = np.sum(wanted * wanted)
-    return np.sum((normalised @ currents) * wanted) / norm2 if norm2 > 0.0 else 0.0
+    wanted = _matvec(normalised, ideal)
+    norm2 = _dot(wanted, wanted)
+    return _dot(_matvec(normalised, currents), wanted) / norm2 if norm2 > 0.0 else 0.0
 
 
 def warm_up() -> None:
