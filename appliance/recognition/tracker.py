@@ -39,12 +39,12 @@ from appliance.recognition.plausibility import (
 )
 from appliance.recognition.posture import Posture, ViewObservation
 from appliance.recognition.reconstruction import Reconstruction, reconstruct
+from appliance.recognition.roi_search import find_in_roi
 from appliance.recognition.segmentation import (
     Blob,
     LogBackground,
     Roi,
     log_background,
-    segment,
 )
 from appliance.recognition.settings import RecognitionSettings
 
@@ -195,6 +195,7 @@ class PostureTracker:
         # background (reset, full-frame search) means a new measurement.
         noise = self._roi_noise
         blobs: dict[str, Blob] = {}
+        feats: dict[str, Features2D] = {}
         start = time.perf_counter_ns()
         for index, name in enumerate(VIEWS):
             points, margin = projected[index], float(self.settings.roi_margin_px)
@@ -214,20 +215,17 @@ class PostureTracker:
                 return None
             known = noise.get(name)
             reuse = known is not None and known[0] is log_bg and known[2] < NOISE_REMEASURE_FRAMES
-            candidates = segment(images[name], log_bg, roi, self.settings,
-                                 sigma=known[1] if reuse and known is not None else None)
             u, v = projected[index, 0].tolist()
-            near = [b for b in candidates if not b.touches_border
-                    and math.hypot(b.centroid_px[0] - u, b.centroid_px[1] - v) <= self.settings.gate_px]
-            if not near:
+            found = find_in_roi(images[name], log_bg, roi, self.settings, (u, v),
+                                sigma=known[1] if reuse and known is not None else None)
+            if found is None:
                 log.debug("view %s: robot not found in ROI %s; falling back to full frame", name, roi)
                 return None
-            blobs[name] = near[0]
-            noise[name] = (log_bg, near[0].sigma, known[2] + 1 if reuse and known is not None else 1)
+            blobs[name], feats[name] = found
+            noise[name] = (log_bg, found[0].sigma, known[2] + 1 if reuse and known is not None else 1)
+        # One compiled call per view finds the blob and its features (roi_search): both are timed as
+        # segmentation here.
         timings["segmentation"] += (time.perf_counter_ns() - start) / 1e3
-        start = time.perf_counter_ns()
-        feats = {name: self._features(blobs[name]) for name in VIEWS}
-        timings["features"] += (time.perf_counter_ns() - start) / 1e3
         self._last_search = "roi"
         return blobs, feats
 
