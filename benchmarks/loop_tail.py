@@ -9,9 +9,12 @@ moving along the shipped path (as ``appliance bench``'s ``_control_step``), then
 * ``cold``: a sweep over 48 MB between repetitions, as a frame's recognition does to the caches
   (the ``appliance bench`` figures are taken in this regime).
 
+``--aligned`` runs the control step with ``CurrentAllocator.allocate_aligned`` (the moment along the
+field normalised inside the kernel) instead of ``_control_step``'s numpy glue, for comparison.
+
 Prints min / p50 / p99 of the thread CPU time (us) per stage; asserts nothing.
 
-    .venv/bin/python benchmarks/loop_tail.py [--n 2000] [--no-amplifier]
+    .venv/bin/python benchmarks/loop_tail.py [--n 2000] [--no-amplifier] [--aligned]
 """
 from __future__ import annotations
 
@@ -51,6 +54,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--n", type=int, default=2000, help="repetitions per regime (default 2000)")
     parser.add_argument("--no-amplifier", action="store_true", help="control + allocation only")
+    parser.add_argument("--aligned", action="store_true", help="control step with allocate_aligned")
     args = parser.parse_args()
     for module in (_actuation, _allocation, _path_follower):   # the control kernels only
         module.warm_up()
@@ -60,6 +64,15 @@ def main() -> int:
     sweep = np.ones(6 * 1024 * 1024)   # 48 MB: more than the L3
     dt = 1.0 / 30.0
     cpu = time.thread_time_ns
+
+    def aligned_step(posture: _Posture, t: float, commanded: np.ndarray) -> object:
+        follower, safety, allocator = chain
+        command = follower.command(posture.centroid_mm, posture.direction, t)
+        decision = safety.update(t, True, command.field_T, command.force_N, None)
+        return allocator.allocate_aligned(posture.centroid_mm, decision.field_T, decision.force_N, 1e-3, commanded, dt)
+
+    step = ((lambda posture, t, commanded: aligned_step(posture, t, commanded)) if args.aligned
+            else (lambda posture, t, commanded: _control_step(chain, posture, t, commanded, dt, 1e-3)))
 
     def run(amplifier: Amplifier | None, port: _TimedPort | None) -> None:
         commanded = np.zeros(chain[2].model.n)
@@ -73,7 +86,7 @@ def main() -> int:
                     sweep.sum()
                 t = k * dt
                 began = cpu()
-                allocation = _control_step(chain, posture, t, commanded, dt, 1e-3)
+                allocation = step(posture, t, commanded)
                 allocated = cpu()
                 control_us.append((allocated - began) / 1e3)
                 if amplifier is not None and port is not None:

@@ -113,11 +113,34 @@ class CurrentAllocator:
         request = np.concatenate((position_mm, field_T, force_N, moment_Am2), axis=None, dtype=np.float64)
         if request.size != 12:
             raise ValueError(f"position, field, force and moment need 3 values each, got {request.size} in all")
+        return self._allocate(request, False, 0.0, previous_a, dt_s)
+
+    def allocate_aligned(self, position_mm: ArrayLike, field_T: ArrayLike, force_N: ArrayLike, moment_am2: float,
+                         previous_a: ArrayLike, dt_s: float,
+                         zero_field_direction: ArrayLike = (0.0, 0.0, 1.0)) -> Allocation:
+        """:meth:`allocate` for a robot whose moment (``moment_am2``, A m^2) lies along the requested field,
+        as the loop assumes (the robot aligns with the field within microseconds, see the path follower),
+        or along the unit ``zero_field_direction`` when the field is zero.
+
+        The same as ``allocate(position_mm, field_T, force_N, moment_am2 * field_T / |field_T|, ...)``, with
+        the normalisation inside the kernel: the loop's three numpy calls on three numbers cost it
+        10-20 us each after a frame's recognition has cycled the caches (issue 8).
+        """
+        request = np.concatenate((position_mm, field_T, force_N, zero_field_direction), axis=None, dtype=np.float64)
+        if request.size != 12:
+            raise ValueError(f"position, field, force and direction need 3 values each, got {request.size} in all")
+        if not math.isfinite(moment_am2):
+            raise ValueError(f"moment_am2 must be finite, got {moment_am2}")
+        return self._allocate(request, True, float(moment_am2), previous_a, dt_s)
+
+    def _allocate(self, request: FloatArray, aligned: bool, moment_am2: float, previous_a: ArrayLike,
+                  dt_s: float) -> Allocation:
         previous = float_vector(previous_a, self.model.n, "previous_a")
         if not dt_s > 0.0:
             raise ValueError(f"dt_s must be positive, got {dt_s}")
         finite, currents, scale, code, achieved_field, achieved_force, residual = _allocate_at(
-            *self.model.loops, request, previous, float(dt_s), self._limits, self.max_power_w, self.rcond)
+            *self.model.loops, request, aligned, moment_am2, previous, float(dt_s), self._limits, self.max_power_w,
+            self.rcond)
         if not finite:
             raise ValueError("position, field, force and moment must be finite")
         limited_by = _LIMITED_BY[code]
@@ -128,19 +151,26 @@ class CurrentAllocator:
 
 @kernel
 def _allocate_at(centres: FloatArray, axes: FloatArray, radii: FloatArray, turns: FloatArray,
-                 owner: NDArray[np.int64], request: FloatArray, previous: FloatArray,
-                 dt_s: float, limits: FloatArray, max_power_w: float, rcond: float
+                 owner: NDArray[np.int64], request: FloatArray, aligned: bool, moment_am2: float,
+                 previous: FloatArray, dt_s: float, limits: FloatArray, max_power_w: float, rcond: float
                  ) -> tuple[bool, FloatArray, float, int, FloatArray, FloatArray, float]:
     """:meth:`CurrentAllocator.allocate` in one call: ``request`` is position (mm), field (T), force (N),
-    moment (A m^2); ``limits`` rows are max current, max slew and resistance. The first value is False
-    (and nothing computed) when the request is not finite."""
+    moment (A m^2); with ``aligned`` its last three values are the unit direction to take for a zero
+    field, and the moment is ``moment_am2`` along the field (:meth:`CurrentAllocator.allocate_aligned`).
+    ``limits`` rows are max current, max slew and resistance. The first value is False (and nothing
+    computed) when the request is not finite."""
     n = limits.shape[1]
     for value in request:
         if not math.isfinite(value):
             return False, np.zeros(n), 0.0, 0, np.zeros(3), np.zeros(3), 0.0
+    moment = request[9:12].copy()
+    if aligned:
+        field_norm = math.sqrt(request[3] * request[3] + request[4] * request[4] + request[5] * request[5])
+        for k in range(3):
+            moment[k] = moment_am2 * (request[3 + k] / field_norm if field_norm > 0.0 else request[9 + k])
     b_per_amp, gradient = _field_and_gradient(centres, axes, radii, turns, owner, n, request[0:3] * 1e-3, _FD_STEP_M)
     currents, scale, code, achieved_field, achieved_force, residual = _allocate(
-        b_per_amp, gradient, request[3:6], request[6:9], request[9:12], previous, dt_s, limits[0], limits[1],
+        b_per_amp, gradient, request[3:6], request[6:9], moment, previous, dt_s, limits[0], limits[1],
         max_power_w, limits[2], rcond)
     return True, currents, scale, code, achieved_field, achieved_force, residual
 
@@ -321,8 +351,8 @@ def warm_up() -> None:
     b_per_amp = np.array([[1e-3, 0.0], [0.0, 1e-3], [0.0, 0.0]])
     loops = (np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]), np.array([0.05]), np.array([1.0]),
              np.array([0], dtype=np.int64))
-    _allocate_at(*loops, np.concatenate((np.array([0.0, 0.0, 1.0]), unit, np.zeros(3), unit)), np.zeros(1), 0.01,
-                 np.ones((3, 1)), 1.0, 1e-9)
+    _allocate_at(*loops, np.concatenate((np.array([0.0, 0.0, 1.0]), unit, np.zeros(3), unit)), True, 1e-3,
+                 np.zeros(1), 0.01, np.ones((3, 1)), 1.0, 1e-9)
     _solve(b_per_amp, np.zeros((3, 2)), unit, np.zeros(3), 1e-3, 1e-9)
     _projection(np.ones((6, 2)), ones, ones)
     _min_norm_solution(np.array([[1.0, 0.0, 1.0], [0.0, 1.0, 0.0]]), np.ones(2), 1e-9)

@@ -140,3 +140,33 @@ def test_qr_minimum_norm_solution_equals_lstsq_also_when_it_hands_over() -> None
         y = rng.normal(size=6)
         expected = np.linalg.lstsq(a, y, rcond=1e-9)[0]
         assert np.abs(_min_norm_solution(a, y, 1e-9) - expected).max() < 1e-8 * np.abs(expected).max()
+
+
+def test_allocate_aligned_is_allocate_with_the_moment_along_the_field() -> None:
+    """The loop's moment (magnitude along the requested field, a given direction when the field is
+    zero) normalised inside the kernel: the same currents as the explicit moment."""
+    allocator = CurrentAllocator(ActuationModel(load_coils()))
+    n = allocator.model.n
+    rng = np.random.default_rng(5)
+    previous = np.zeros(n)
+    for _ in range(20):
+        position = rng.uniform(-10.0, 10.0, 3)
+        field = rng.normal(size=3) * 4e-4
+        force = rng.normal(size=3) * 3e-6
+        moment = 2e-3 * (field / math.sqrt(float(field @ field)))
+        expected = allocator.allocate(position, field, force, moment, previous, 1 / 30)
+        got = allocator.allocate_aligned(position, field, force, 2e-3, previous, 1 / 30)
+        np.testing.assert_allclose(got.currents_a, expected.currents_a, rtol=1e-12, atol=1e-15)
+        assert (got.scale, got.limited_by) == pytest.approx((expected.scale, expected.limited_by))
+        previous = got.currents_a
+    # A zero field: the moment along the given direction (the force still needs one).
+    direction = np.array([0.0, 0.6, 0.8])
+    force = np.array([0.0, 0.0, 2e-6])
+    expected = allocator.allocate(np.zeros(3), np.zeros(3), force, 2e-3 * direction, np.zeros(n), 1 / 30)
+    got = allocator.allocate_aligned(np.zeros(3), np.zeros(3), force, 2e-3, np.zeros(n), 1 / 30, direction)
+    np.testing.assert_array_equal(got.currents_a, expected.currents_a)
+    assert np.any(got.currents_a)
+    with pytest.raises(ValueError, match="moment_am2 must be finite"):
+        allocator.allocate_aligned(np.zeros(3), np.zeros(3), force, math.nan, np.zeros(n), 1 / 30)
+    with pytest.raises(ValueError, match="must be finite"):
+        allocator.allocate_aligned(np.zeros(3), [math.inf, 0.0, 0.0], force, 2e-3, np.zeros(n), 1 / 30)
