@@ -35,7 +35,8 @@ class LogBackground:
     whole upsampled image (computed once, for callers that want an array).
     """
 
-    def __init__(self, coarse_log: np.ndarray, coarse_background: np.ndarray, shape: tuple[int, int]) -> None:
+    def __init__(self, coarse_log: np.ndarray, coarse_background: np.ndarray, shape: tuple[int, int],
+                 coarse_attenuation: np.ndarray | None = None) -> None:
         #: log of the downsampled frame (dark level removed) and its closing: their difference is the
         #: coarse attenuation image.
         self.coarse_log = coarse_log
@@ -46,7 +47,8 @@ class LogBackground:
         self.fy = self.shape[0] / hs
         self.fx = self.shape[1] / ws
         self._full: np.ndarray | None = None
-        self._coarse_attenuation: np.ndarray | None = None
+        #: (Given when it was computed with the background, else computed at first use.)
+        self._coarse_attenuation: np.ndarray | None = coarse_attenuation
         # The last interpolated window, grown by _WINDOW_SLACK_PX: a tracked robot's ROI moves a few
         # pixels a frame, so most ROIs are slices of it.
         self._window: tuple[int, int, int, int, np.ndarray] | None = None
@@ -152,6 +154,14 @@ def log_background(image: np.ndarray, scale_px: int = 48, dark_level: float = 0.
     k = max(3, (scale_px // (2 * f)) | 1)
     closed = cv2.morphologyEx(field, cv2.MORPH_CLOSE, _ellipse(k), borderType=cv2.BORDER_REPLICATE)
     closed = cv2.GaussianBlur(closed, (0, 0), k / 3.0, borderType=cv2.BORDER_REPLICATE)
+    if (hs, ws) == (2 * hb, 2 * wb):
+        # Back onto the detection grid and the coarse attenuation in one compiled pass (a resize, a
+        # subtraction and their temporaries otherwise).
+        coarse = np.empty((hs, ws), dtype=np.float32)
+        attenuation = np.empty_like(coarse)
+        background_kernels.upsample_attenuation(np.ascontiguousarray(closed, dtype=np.float32), logs, coarse,
+                                                attenuation)
+        return LogBackground(logs, coarse, (h, w), attenuation)
     coarse = cv2.resize(closed, (ws, hs), interpolation=cv2.INTER_LINEAR)
     return LogBackground(logs, coarse, (h, w))
 

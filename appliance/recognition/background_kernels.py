@@ -10,6 +10,8 @@ cheap and the per-pixel work that numpy would spread over dozens of calls is one
   level exactly as OpenCV's ``INTER_AREA`` downsampling of a 16-bit frame rounds it, then
   ``log(max(mean - dark, 1))`` read from a table of the 65536 gray levels (a table read is several
   times cheaper than a logarithm); the ``f = 4`` variant (the default scale) adds whole 64-bit words;
+* :func:`upsample_attenuation` - the closed field brought back onto the detection grid (OpenCV's
+  bilinear ``2x`` mapping) and the coarse attenuation taken in the same pass, two rows at a time;
 * :func:`median_abs_step` - the median absolute difference of horizontal neighbours on a row
   subsample (the robust noise estimate), by radix selection instead of a sort, and not at all when a
   count shows it below the level that could matter to the caller;
@@ -88,6 +90,59 @@ def block_mean_log_4(words: np.ndarray, table: np.ndarray, out: np.ndarray) -> N
         o = out[i]
         for j in range(ws):
             o[j] = table[level[j]]
+
+
+@kernel
+def _doubled_row(src: np.ndarray, dst: np.ndarray) -> None:  # pragma: no cover
+    """``dst`` (2n) = ``src`` (n) upsampled 2x by OpenCV's ``INTER_LINEAR`` mapping: output pixel ``x``
+    sits at ``(x + 0.5) / 2 - 0.5`` on the source, so inside it is 3/4 of its nearer source pixel and
+    1/4 of the other, and the two end pixels copy the source's ends."""
+    n = src.shape[0]
+    quarter = np.float32(0.25)
+    three = np.float32(0.75)
+    dst[0] = src[0]
+    for k in range(n - 1):
+        a = src[k]
+        b = src[k + 1]
+        dst[2 * k + 1] = a * three + b * quarter
+        dst[2 * k + 2] = a * quarter + b * three
+    dst[2 * n - 1] = src[n - 1]
+
+
+@kernel
+def _blend_rows(upper: np.ndarray, w_upper: np.float32, lower: np.ndarray, w_lower: np.float32,
+                logs: np.ndarray, coarse: np.ndarray, attenuation: np.ndarray) -> None:  # pragma: no cover
+    for x in range(coarse.shape[0]):
+        v = upper[x] * w_upper + lower[x] * w_lower
+        coarse[x] = v
+        attenuation[x] = v - logs[x]
+
+
+@kernel
+def upsample_attenuation(closed: np.ndarray, logs: np.ndarray, coarse: np.ndarray,
+                         attenuation: np.ndarray) -> None:  # pragma: no cover
+    """``coarse`` = ``closed`` (h, w) upsampled to (2h, 2w) as ``cv2.resize(..., INTER_LINEAR)`` does it
+    (within float rounding), and ``attenuation = coarse - logs``, in one pass over the output.
+
+    Each output row blends the two source rows around it, doubled along x once each (two row buffers
+    that swap roles), so no upsampled temporary is written and read back.
+    """
+    h = closed.shape[0]
+    rows = coarse.shape[0]
+    one = np.float32(1.0)
+    zero = np.float32(0.0)
+    quarter = np.float32(0.25)
+    three = np.float32(0.75)
+    buffers = np.empty((2, coarse.shape[1]), dtype=np.float32)
+    upper, lower = buffers[0], buffers[1]
+    _doubled_row(closed[0], upper)
+    _blend_rows(upper, one, upper, zero, logs[0], coarse[0], attenuation[0])
+    for k in range(h - 1):
+        _doubled_row(closed[k + 1], lower)
+        _blend_rows(upper, three, lower, quarter, logs[2 * k + 1], coarse[2 * k + 1], attenuation[2 * k + 1])
+        _blend_rows(upper, quarter, lower, three, logs[2 * k + 2], coarse[2 * k + 2], attenuation[2 * k + 2])
+        upper, lower = lower, upper
+    _blend_rows(upper, one, upper, zero, logs[rows - 1], coarse[rows - 1], attenuation[rows - 1])
 
 
 @kernel
@@ -305,6 +360,7 @@ def warm_up() -> None:
         block_mean_log(frame, 4, table, small)
         block_mean_log_4(frame.view(np.uint64), table, small)
     median_abs_step(small, 2, 0.0)
+    upsample_attenuation(np.zeros((1, 1), dtype=np.float32), small, np.empty_like(small), np.empty_like(small))
     coarse_components(small, 0.5, 0.5, np.zeros((2, 2), dtype=np.int32))
     coarse_components(small, 0.5, 0.5, np.zeros((0, 0), dtype=np.int32))
 

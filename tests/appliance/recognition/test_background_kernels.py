@@ -56,6 +56,19 @@ def test_downsampling_of_sizes_that_are_not_multiples_goes_through_opencv() -> N
     np.testing.assert_allclose(_downsample_log(image, 4, 1000.0), _reference_log(image, 4, 1000.0), atol=1e-6)
 
 
+@pytest.mark.parametrize("shape", [(64, 64), (25, 19), (1, 7), (6, 1), (1, 1)])
+def test_upsample_attenuation_is_opencvs_bilinear_doubling_less_the_logs(shape: tuple[int, int]) -> None:
+    rng = np.random.default_rng(shape[0] * 10 + shape[1])
+    closed = rng.uniform(8.0, 10.0, shape).astype(np.float32)
+    logs = rng.uniform(7.0, 10.0, (2 * shape[0], 2 * shape[1])).astype(np.float32)
+    coarse, attenuation = np.empty_like(logs), np.empty_like(logs)
+    kernels.upsample_attenuation(closed, logs, coarse, attenuation)
+    expected = cv2.resize(closed, (2 * shape[1], 2 * shape[0]), interpolation=cv2.INTER_LINEAR)
+    # The same taps; only the rounding of the two products' sum may differ (OpenCV may fuse them).
+    np.testing.assert_allclose(coarse, expected, rtol=0, atol=4e-6)
+    np.testing.assert_array_equal(attenuation, coarse - logs)
+
+
 @pytest.mark.parametrize("shape, step", [((9, 12), 2), ((40, 31), 4), ((64, 64), 4), ((5, 2), 1), ((3, 3), 3)])
 def test_median_abs_step_equals_numpy(shape: tuple[int, int], step: int) -> None:
     rng = np.random.default_rng(shape[0] * 100 + shape[1])
@@ -141,7 +154,7 @@ def test_a_read_only_frame_compiles_nothing_after_the_warm_up() -> None:
     from appliance.recognition import RecognitionSettings, detect, log_background
 
     kernels.warm_up()
-    names = ("block_mean_log", "block_mean_log_4", "median_abs_step", "coarse_components")
+    names = ("block_mean_log", "block_mean_log_4", "median_abs_step", "coarse_components", "upsample_attenuation")
     compiled = {name: len(getattr(kernels, name).signatures) for name in names}
     image = np.random.default_rng(3).normal(30000, 60, (256, 256)).astype(np.uint16)
     image[100:108, 60:160] = 9000
