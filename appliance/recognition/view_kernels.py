@@ -456,16 +456,53 @@ def _scanline_fill(allowed, out, seeds_y, seeds_x, n_seeds, ys, xs, n):  # pragm
 
 
 @kernel
-def _end_stops(smooth, wy0, wx0, ys, xs, n, s_of, s_lo, s_hi, tolerance, fade_step):  # pragma: no cover
+def _side_baseline(smooth, wy0, wx0, hh, ww, ox, oy, ax, ay, lo_s, nb, side_t):  # pragma: no cover
+    """The attenuation beside the body, per 1-px slice along the axis: slice ``b`` (at ``s = lo_s + b
+    + 0.5`` from the core's centroid ``ox, oy`` along ``ax, ay``) gets the mean of the smoothed image
+    at ``side_t`` and ``side_t + 2`` px either side of the axis (nearest pixels, clamped to the window
+    ``hh x ww`` at ``wy0, wx0``), averaged over the slice and its two neighbours (12 pixels).
+
+    It is the baseline the body stands on where that varies along the body: a vessel crossing or
+    running along the robot raises it there only, where the ring's single median is too high beyond
+    the vessel (a faint cone tip leaving the vessel fell below it: robot 6, 4.8 mm of cone lost) and
+    too low over it."""
+    raw = np.empty(nb)
+    for b in range(nb):
+        s_ = lo_s + b + 0.5
+        acc = 0.0
+        for t_ in (-side_t - 2.0, -side_t, side_t, side_t + 2.0):
+            gx = s_ * ax - t_ * ay + ox - wx0
+            gy = s_ * ay + t_ * ax + oy - wy0
+            x = min(max(math.floor(gx + 0.5), 0), ww - 1)
+            y = min(max(math.floor(gy + 0.5), 0), hh - 1)
+            acc += float(smooth[wy0 + y, wx0 + x])
+        raw[b] = 0.25 * acc
+    out = np.empty(nb, dtype=np.float32)
+    for b in range(nb):
+        lo, hi = max(b - 1, 0), min(b + 1, nb - 1)
+        acc = 0.0
+        for k in range(lo, hi + 1):
+            acc += raw[k]
+        out[b] = np.float32(acc / (hi - lo + 1))
+    return out
+
+
+@kernel
+def _end_stops(smooth, wy0, wx0, ys, xs, n, s_of, s_lo, s_hi, tolerance, fade_step, side, side_s0):  # pragma: no cover
     """How far (px along the axis) the body may extend beyond each end of its core: ``(beyond s_hi,
-    beyond s_lo)``, infinite where nothing lies beyond.
+    beyond s_lo, the body's half-width)``, infinite where nothing lies beyond.
 
     Beyond each end of the core the body can only fade: a cone's attenuation falls steadily to its
     apex, a flat end's within the blur. Walking outward in 1-px slices, the body ends where the
-    slice's strongest pixel stops falling (over ``fade_step`` slices, by more than ``tolerance``),
-    or where the slice is wider than the body along its core (1.2 x the median slice width + 2):
-    what continues at a steady level or widens is something else, such as a vessel the robot touches.
-    ``ys, xs`` (window px) and ``s_of`` (their axial coordinates) list the body's ``n`` pixels."""
+    slice's contrast stops falling (over ``fade_step`` slices, by more than ``tolerance``), or where
+    the slice is wider than the body along its core (1.2 x the median slice width + 2): what
+    continues at a steady level or widens is something else, such as a vessel the robot touches.
+    The contrast is the slice's strongest pixel above the attenuation beside the body there
+    (``side``, per 1-px slice from ``s = side_s0``; :func:`_side_baseline`): a cone tip entering a
+    wider vessel gains the vessel's attenuation both on and beside the body, and still fades (its
+    strongest pixel alone rises there); a vessel continuing beyond a flat end is stronger on the axis
+    than beside it, and stays. ``ys, xs`` (window px) and ``s_of`` (their axial coordinates) list
+    the body's ``n`` pixels."""
     nbins_core = math.floor(s_hi - s_lo) + 1
     core_width = np.zeros(max(nbins_core, 1) + 1, dtype=np.int64)
     top_bin = -1
@@ -484,10 +521,11 @@ def _end_stops(smooth, wy0, wx0, ys, xs, n, s_of, s_lo, s_hi, tolerance, fade_st
         counts = core_width[:top_bin + 1].astype(np.float64)
         max_width = 1.2 * float(median_inplace(counts, top_bin + 1)) + 2.0
     stops = np.full(2, np.inf)
-    for side in range(2):
-        sign = 1.0 if side == 0 else -1.0
-        start = s_hi if side == 0 else s_lo
-        far = far_hi if side == 0 else far_lo
+    nside = side.size
+    for end in range(2):
+        sign = 1.0 if end == 0 else -1.0
+        start = s_hi if end == 0 else s_lo
+        far = far_hi if end == 0 else far_lo
         if not far > 0.0:
             continue
         nb = math.floor(far) + 1
@@ -500,12 +538,27 @@ def _end_stops(smooth, wy0, wx0, ys, xs, n, s_of, s_lo, s_hi, tolerance, fade_st
                 peak[b] = max(peak[b], float(smooth[wy0 + ys[i], wx0 + xs[i]]))
                 width[b] += 1
         stop = nb
+        # A slice without pixels is a gap of the pixel grid, not of the body (the mask is connected):
+        # an axis along a pixel row puts every pixel an integer distance beyond the core's last one,
+        # and slice 0 stayed empty, which cut every such body at its core's end. It takes the
+        # contrast of the slice before it (of the first slice with pixels, before the first).
+        last = -np.inf
         for b in range(nb):
-            if (not math.isfinite(peak[b]) or width[b] > max_width
+            if math.isfinite(peak[b]):
+                k = math.floor(start + sign * (b + 0.5) - side_s0)
+                peak[b] -= side[min(max(k, 0), nside - 1)]
+                if not math.isfinite(last):
+                    for j in range(b):
+                        peak[j] = peak[b]
+                last = peak[b]
+            else:
+                peak[b] = last
+        for b in range(nb):
+            if (width[b] > max_width
                     or (b >= fade_step and peak[b] > peak[b - fade_step] - tolerance)):
                 stop = b
                 break
-        stops[side] = stop
+        stops[end] = stop
     return stops
 
 
@@ -734,10 +787,12 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
     height = peak - baseline
     if height < min_peak:
         return 0, empty_w, empty_m, no_scalars
-    # The body: above the baseline by ``level``, inside the capsule, 8-connected to the core.
+    # The body: above the attenuation beside it by ``level``, inside the capsule, 8-connected to the core.
     level = max(support_sigma * sigma_s, support_fraction * height)
-    base32, lvl32 = np.float32(baseline), np.float32(level)
+    lvl32 = np.float32(level)
     lo_s, hi_s = s_min - reach, s_max + reach
+    nside = math.floor(hi_s - lo_s) + 1
+    side = _side_baseline(smooth, wy0, wx0, hh, ww, ox, oy, ax, ay, lo_s, nside, half_width + 1.0)
     above = np.empty((hh, ww), dtype=np.uint8)
     for y in range(hh):
         gy = (wy0 + y) - oy
@@ -745,7 +800,8 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
         for x in range(ww):
             gx = (wx0 + x) - ox
             s_, t_ = gx * ax + gy * ay, -gx * ay + gy * ax
-            arow[x] = (((srow[x] - base32) > lvl32) & (abs(t_) <= half_width)  # no branch: vectorised
+            k = min(max(int(s_ - lo_s), 0), nside - 1)
+            arow[x] = (((srow[x] - side[k]) > lvl32) & (abs(t_) <= half_width)
                        & (s_ >= lo_s) & (s_ <= hi_s))
     mask = np.zeros((hh, ww), dtype=np.uint8)
     mys = np.empty(hh * ww, dtype=np.int64)
@@ -764,7 +820,7 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
         s_of[i] = gx * ax + gy * ay
         t_of[i] = -gx * ay + gy * ax
     tolerance = 3.0 * sigma_s * math.sqrt(2.0)
-    stops = _end_stops(smooth, wy0, wx0, mys, mxs, m, s_of, s_min, s_max, tolerance, fade_step)
+    stops = _end_stops(smooth, wy0, wx0, mys, mxs, m, s_of, s_min, s_max, tolerance, fade_step, side, lo_s)
     count = 0
     in_lo, in_hi, in_t = np.inf, -np.inf, -np.inf
     for i in range(m):

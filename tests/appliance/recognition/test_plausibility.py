@@ -154,3 +154,41 @@ def test_a_tracked_rod_in_doubt_cannot_change_length_or_turn_its_head_round_in_o
     assert reason is not None and "100 deg away" in reason
     assert at_odds_with_track(rec(19.0, tilted, head=False), over_vessel, up, 19.0, SETTINGS) is None
     assert at_odds_with_track(rec(14.5, -up), over_vessel, up, 19.0, RecognitionSettings(estimator="paper")) is None
+
+
+def test_declutter_places_the_centroid_and_both_tips_by_the_clean_view() -> None:
+    # A 10 mm rod seen side-on-ish by both views; view p overlaps a vessel: its blob slid 0.8 mm along
+    # the axis and its +end ran on 3 mm into the vessel, which the triangulation carried into the 3D
+    # centroid and tips. The clean view q places the centroid and each tip back on the axis.
+    from appliance.recognition.correspondence import Pairing
+    from appliance.recognition.features import Features2D
+    from appliance.recognition.plausibility import declutter
+    from appliance.recognition.reconstruction import Reconstruction
+
+    calibration = _calibration(150.0)
+    d = np.array([0.5, 0.6, 0.62])
+    d /= np.linalg.norm(d)
+    centroid = np.array([1.0, -2.0, 1.5])
+    tips = np.vstack([centroid + 5.0 * d, centroid - 5.0 * d])
+
+    def seen(name: str, c: np.ndarray, ends: np.ndarray) -> Features2D:
+        view = calibration.views[name]
+        uv = view.project(np.vstack([c, ends]))
+        axis = (uv[1] - uv[2]) / np.linalg.norm(uv[1] - uv[2])
+        return Features2D(uv[0], axis, (4.0, 1.0), uv[1:], 100)
+
+    slid, ran_on = centroid + 0.8 * d, np.vstack([tips[0] + 3.0 * d, tips[1]])
+    feats = {"p": seen("p", slid, ran_on), "q": seen("q", centroid, tips)}
+    rec = Reconstruction(centroid=centroid + 0.4 * d, direction=d, tips=np.vstack([ran_on[0] - 1.5 * d, tips[1]]),
+                         head_identified=True, length_mm=11.5, reprojection_px=4.0,
+                         pairing=Pairing("A", 0.5, 9.0, True), plane_angle_deg=40.0,
+                         view_tips={name: f.tips for name, f in feats.items()}, view_features=feats)
+    blobs = {"p": SimpleNamespace(clutter=0.4), "q": SimpleNamespace(clutter=0.0)}
+    fixed = declutter(calibration, rec, blobs, SETTINGS)
+    # The clean centroid carries a perspective correction of a few hundredths of a mm here.
+    assert np.linalg.norm(fixed.centroid - centroid) < 0.1
+    np.testing.assert_allclose(fixed.tips, tips, atol=0.1)
+    assert fixed.length_mm == pytest.approx(10.0, abs=0.1)
+    # Neither view cluttered: nothing is moved.
+    clean = {"p": SimpleNamespace(clutter=0.0), "q": SimpleNamespace(clutter=0.0)}
+    assert declutter(calibration, rec, clean, SETTINGS) is rec

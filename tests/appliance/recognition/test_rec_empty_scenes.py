@@ -7,7 +7,6 @@ Also the robot against the vessel: a centroid placed by the clean view where the
 vessel, and a cone end's tip found from both views' profiles when the head is not identified."""
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 
@@ -172,9 +171,12 @@ def test_centroid_over_a_vessel_in_one_view_comes_from_the_clean_view(views: dic
         errors["blind"].append(float(np.linalg.norm(other.centroid_mm - centre)))
     assert len(errors["ours"]) + kept_only_by_ours >= 6, "too few one-view overlaps to compare"
     rms = {k: float(np.sqrt(np.mean(np.square(v)))) for k, v in errors.items()}
-    # Frames both report: 0.43 vs 0.70 mm RMS (with the reprojection rule; 0.6x before it took the two
-    # frames only ours reports out of the comparison); without clutter detection they would be worse.
-    assert rms["ours"] < 0.65 * rms["blind"], rms
+    # Frames both report: 0.38 vs 0.49 mm RMS since the body stands on the attenuation beside it slice by
+    # slice (the blind tracker's blobs lose less to the vessel; before: 0.43 vs 0.70 with the reprojection
+    # rule, 0.6x before it took the two frames only ours reports out of the comparison); without clutter
+    # detection they are still worse, and ours is no worse than before.
+    assert rms["ours"] < 0.85 * rms["blind"], rms
+    assert rms["ours"] < 0.43, rms
 
 
 def test_cone_end_is_found_from_both_views_profiles_when_the_head_is_not_identified() -> None:

@@ -181,54 +181,39 @@ def test_segment_with_the_known_noise_sigma_equals_measuring_it() -> None:
     assert segment(image, log_bg, None, settings, sigma=1.0) == []
 
 
-def test_tracker_reuses_a_views_noise_sigma_and_measures_it_again_periodically(
-        monkeypatch: pytest.MonkeyPatch) -> None:
-    from appliance.geometry import Calibration, View
-    from appliance.recognition import PostureTracker
-    from appliance.recognition import tracker as tracker_module
-    from drivers.loopback.xray_render import (
-        BiplaneRenderer,
-        ImagingSettings,
-        RobotBody,
-        RobotPose,
-        biplane_views,
-    )
+def _cone_leaving_a_vessel(vessel_until_x: float) -> tuple[np.ndarray, np.ndarray]:
+    """A 96x256 view (raw, log B) of a cone-headed body along x (cylinder x 40..120, radius 6 px; cone to
+    its apex at x 200, like robots 3 and 6), lying on a contrast-filled vessel as wide as 2.5 bodies
+    that runs along it and ends at ``vessel_until_x`` (its tip leaves the vessel); blurred, noisy."""
+    rng = np.random.default_rng(3)
+    yy, xx = np.mgrid[0:96, 0:256].astype(np.float64)
+    radius = np.where(xx <= 120.0, 6.0, 6.0 * np.clip((200.0 - xx) / 80.0, 0.0, 1.0))
+    radius = np.where(xx < 40.0, 0.0, radius)
+    body = 0.1 * 2.0 * np.sqrt(np.maximum(radius ** 2 - (yy - 48.0) ** 2, 0.0))
+    vessel = 0.012 * 2.0 * np.sqrt(np.maximum(15.0 ** 2 - (yy - 50.0) ** 2, 0.0)) * (xx < vessel_until_x)
+    a = cv2.GaussianBlur((body + vessel).astype(np.float32), (0, 0), 0.7)
+    image = 20000.0 * np.exp(-a.astype(np.float64)) + rng.normal(0.0, 60.0, a.shape)
+    return np.clip(image, 0, 65535).astype(np.uint16), np.full(a.shape, np.float32(math.log(20000.0)))
 
-    true_views = biplane_views(image_size=(256, 224), fov_mm=(80.0, 70.0))
-    calibration = Calibration.from_views(*(View(n, v.K, v.dist, v.R, v.t, v.image_size)
-                                           for n, v in sorted(true_views.items())))
-    renderer = BiplaneRenderer(true_views, RobotBody(10.0, 2.0, 20.0, 1.0), settings=ImagingSettings(), seed=5)
-    passed: list[tuple[str, float | None, float]] = []
-    real_segment = tracker_module.segment
 
-    def spy(image, log_bg, roi, settings, *, sigma=None):  # type: ignore[no-untyped-def]
-        blobs = real_segment(image, log_bg, roi, settings, sigma=sigma)
-        passed.append(("p" if len(passed) % 2 == 0 else "q", sigma, blobs[0].sigma if blobs else math.nan))
-        return blobs
+def test_a_cone_tip_leaving_the_vessel_it_lies_on_stays_in_the_body() -> None:
+    """The body is what stands above the attenuation beside it, slice by slice: beyond the vessel's end
+    the faint cone tip stands on the open field, not on the vessel's level (the ring's median, which
+    cut robot 6's cone 4.8 mm short on the accuracy benchmark). And an axis along a pixel row leaves
+    slices of the pixel grid empty beyond the core's end, which are no end of the body (before: both
+    bodies ended at x 156-160, where the core does)."""
+    from appliance.recognition import RecognitionSettings, segment
 
-    monkeypatch.setattr(tracker_module, "segment", spy)
-    monkeypatch.setattr(tracker_module, "NOISE_REMEASURE_FRAMES", 3)
-    tracker = PostureTracker(calibration)
-    for n in range(8):
-        t = 0.04 * n
-        pose = RobotPose(np.array([-4.0 + 10.0 * t, 2.0, 3.0]), np.array([1.0, 0.3, 0.4]))
-        pair = renderer.render(pose)
-        assert tracker.process(pair.images["p"], pair.images["q"], frame=n, t=t).ok
-        assert tracker.last_search == ("full" if n == 0 else "roi")
-    # Frames 1..7 search ROIs: measured on frames 1, 4, 7, reused (the last measurement) on the others.
-    rois = [passed[i:i + 2] for i in range(len(passed) - 14, len(passed), 2)]
-    for k, frame_calls in enumerate(rois):
-        for view, sigma, used in frame_calls:
-            if k % 3 == 0:
-                assert sigma is None, (k, view)
-            else:
-                assert sigma is not None and used == sigma
-                measured_on = rois[k - k % 3]
-                assert sigma == next(u for v, _, u in measured_on if v == view)
-    # A reset (new backgrounds) measures again on the first ROI frame.
-    tracker.reset()
-    passed.clear()
-    for n in range(2):
-        pair = renderer.render(RobotPose(np.array([0.0, 2.0, 3.0]), np.array([1.0, 0.3, 0.4])))
-        tracker.process(pair.images["p"], pair.images["q"], frame=10 + n, t=0.5 + 0.04 * n)
-    assert [s for _, s, _ in passed[-2:]] == [None, None]
+    settings = RecognitionSettings()
+    for vessel_until_x in (150.0, 0.0):  # the tip leaves the vessel; no vessel at all
+        image, log_bg = _cone_leaving_a_vessel(vessel_until_x)
+        blobs = segment(image, log_bg, None, settings)
+        assert blobs, vessel_until_x
+        blob = blobs[0]
+        columns = np.flatnonzero(blob.mask.any(axis=0)) + blob.window.x0
+        # The apex is at x 200; the cone's chord is 0.2 of the peak (the body's level) at x 184, less
+        # after the blur and the 5x5 smoothing (measured: 176-177).
+        assert columns.max() >= 172, (vessel_until_x, columns.max())
+        assert columns.min() <= 41, (vessel_until_x, columns.min())
+        # ... and the vessel's own stretch before the robot (x < 40) is not the body.
+        assert columns.min() >= 36, (vessel_until_x, columns.min())
