@@ -27,11 +27,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from appliance.benchmarking import _TimedPort, _control_chain, _control_step  # noqa: E402
-from appliance.commands.bench import served_amplifier  # noqa: E402
 import appliance.control.actuation as _actuation  # noqa: E402
 import appliance.control.allocation as _allocation  # noqa: E402
 import appliance.control.path_follower as _path_follower  # noqa: E402
+from appliance.benchmarking import _control_chain, _control_step, _TimedPort  # noqa: E402
+from appliance.commands.bench import served_amplifier  # noqa: E402
 from drivers.amplifier import Amplifier  # noqa: E402
 from drivers.transport import open_serial  # noqa: E402
 

@@ -71,7 +71,6 @@ from firmware_protocol.amplifier import (
     MsgType,
     Nak,
     NakReason,
-    SetCurrents,
     SetCurrentsReply,
     State,
     Status,

@@ -7,7 +7,13 @@ import math
 import numpy as np
 import pytest
 
-from appliance.control import ActuationModel, CurrentAllocator, PathFollower, SafetySupervisor, load_coils
+from appliance.control import (
+    ActuationModel,
+    CurrentAllocator,
+    PathFollower,
+    SafetySupervisor,
+    load_coils,
+)
 from appliance.control.allocation import _allocate_at
 from appliance.control.kernel_args import float_vector
 from appliance.control.path_follower import _follow
