@@ -23,6 +23,7 @@ from __future__ import annotations
 import functools
 import logging
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -67,8 +68,14 @@ class Roi:
         coords = np.asarray(points_px, dtype=np.float64).ravel().tolist()
         if not coords or len(coords) % 2:
             raise ValueError(f"expected (N, 2) points, got {len(coords)} coordinates")
-        xs, ys = coords[0::2], coords[1::2]
-        if not all(map(math.isfinite, coords)):
+        return cls.around_coordinates(coords[0::2], coords[1::2], margin_px, shape)
+
+    @classmethod
+    def around_coordinates(cls, xs: Sequence[float], ys: Sequence[float], margin_px: float,
+                           shape: tuple[int, ...]) -> Roi | None:
+        """:meth:`around` on points given as their x and y coordinates (plain floats, not empty): what the
+        tracker has in hand, without building an array for three points."""
+        if not (all(map(math.isfinite, xs)) and all(map(math.isfinite, ys))):
             return None
         h, w = int(shape[0]), int(shape[1])
         x0 = max(0, math.floor(min(xs) - margin_px))

@@ -63,10 +63,13 @@ class _Track:
     """What the tracker remembers of the last recognised frames."""
 
     t: float
-    centroid: np.ndarray
+    #: The centroid (mm) and velocity (mm/s, zero until two frames are known) as plain floats: the
+    #: prediction and the velocity are a few operations on three numbers, where numpy's per-call
+    #: overhead would be most of the cost (the same IEEE operations either way).
+    centroid: tuple[float, float, float]
     direction: np.ndarray | None
     length_mm: float | None
-    velocity: np.ndarray  # mm/s, zero until two frames are known
+    velocity: tuple[float, float, float]
     lost_frames: int = 0
     #: Per view, the last image's centroid and ends and the body's half width (px, plain floats): the ROI
     #: must hold the whole blob with room for the segmentation's ring and fill across it, also for a wide
@@ -86,6 +89,8 @@ class PostureTracker:
         self.calibration = calibration
         self.settings = settings or RecognitionSettings()
         self.F = fundamental_matrix(calibration.p, calibration.q)
+        #: Both views packed for the compiled kernels (the calibration is immutable).
+        self._packed = calibration.packed
         self._log_bg: dict[str, LogBackground] = {}
         self._track: _Track | None = None
         self._last_search = "none"
@@ -140,8 +145,9 @@ class PostureTracker:
         if mismatch > self.settings.epipolar_band_px:
             failure = (f"the robot images of the two views do not correspond (centroids {mismatch:.1f} px from "
                        f"each other's epipolar lines)")
-        elif tips_rms > max(self.settings.tips_band_px, self.settings.tips_band_fraction * max(
-                _image_length_px(f) for f in feats.values())):
+        elif tips_rms > self.settings.tips_band_px and tips_rms > max(
+                self.settings.tips_band_px, self.settings.tips_band_fraction * max(
+                    _image_length_px(f) for f in feats.values())):
             failure = (f"the robot images' ends do not correspond in either pairing (RMS epipolar distance "
                        f"{tips_rms:.1f} px); one view's blob is not (only) the robot")
         else:
@@ -185,12 +191,13 @@ class PostureTracker:
         # The constant-velocity prediction in plain floats (the same IEEE operations as on the arrays,
         # without numpy's per-call overhead on three numbers).
         dt = t - track.t
-        (x, y, z), (vx, vy, vz) = track.centroid.tolist(), track.velocity.tolist()
+        (x, y, z), (vx, vy, vz) = track.centroid, track.velocity
         c0, c1, c2 = x + vx * dt, y + vy * dt, z + vz * dt
         half = 0.5 * (track.length_mm or 0.0) + 1.0
         d0, d1, d2 = track.direction.tolist() if track.direction is not None else (0.0, 0.0, 0.0)
-        # The robot's centre and ends, predicted, in both views (2, 3, 2): one compiled call.
-        projected = project_segment(self.calibration.packed, c0, c1, c2, d0, d1, d2, half)
+        # The robot's centre and ends, predicted, in both views ([view][centre, end, end][u, v]): one
+        # compiled call, read as plain floats.
+        projected = project_segment(self._packed, c0, c1, c2, d0, d1, d2, half).tolist()
         # Per view: (the background it was measured against, noise sigma, frames it has served). A new
         # background (reset, full-frame search) means a new measurement.
         noise = self._roi_noise
@@ -198,25 +205,24 @@ class PostureTracker:
         feats: dict[str, Features2D] = {}
         start = time.perf_counter_ns()
         for index, name in enumerate(VIEWS):
-            points, margin = projected[index], float(self.settings.roi_margin_px)
+            (pu, pv), (eu0, ev0), (eu1, ev1) = projected[index]
+            margin = float(self.settings.roi_margin_px)
             outline = track.view_outline_px.get(name) if track.view_outline_px else None
             if outline is not None:
                 # The last frame's 2D ends, moved with the predicted image centroid (the 3D ends at the
                 # centroid +- half the length miss where a cone puts the centroid off the middle: 5.7 mm
                 # on robot 6), and the margin counted from the body's edge, not its axis.
                 cu, cv, u0, v0, u1, v1, half_width = outline
-                pu, pv = projected[index, 0].tolist()
                 du, dv = pu - cu, pv - cv
-                points = [[pu, pv], [u0 + du, v0 + dv], [u1 + du, v1 + dv]]
+                eu0, ev0, eu1, ev1 = u0 + du, v0 + dv, u1 + du, v1 + dv
                 margin += half_width
-            roi = Roi.around(points, margin, images[name].shape)
+            roi = Roi.around_coordinates((pu, eu0, eu1), (pv, ev0, ev1), margin, images[name].shape)
             log_bg = self._log_bg.get(name)
             if roi is None or log_bg is None:
                 return None
             known = noise.get(name)
             reuse = known is not None and known[0] is log_bg and known[2] < NOISE_REMEASURE_FRAMES
-            u, v = projected[index, 0].tolist()
-            found = find_in_roi(images[name], log_bg, roi, self.settings, (u, v),
+            found = find_in_roi(images[name], log_bg, roi, self.settings, (pu, pv),
                                 sigma=known[1] if reuse and known is not None else None)
             if found is None:
                 log.debug("view %s: robot not found in ROI %s; falling back to full frame", name, roi)
@@ -353,16 +359,21 @@ class PostureTracker:
     def _remember(self, posture: Posture) -> None:
         assert posture.centroid_mm is not None
         old = self._track
-        velocity = np.zeros(3)
+        x, y, z = posture.centroid_mm.tolist()
+        velocity = (0.0, 0.0, 0.0)
         if old is not None and old.lost_frames == 0 and posture.t > old.t:
-            velocity = (posture.centroid_mm - old.centroid) / (posture.t - old.t)
+            dt = posture.t - old.t
+            ox, oy, oz = old.centroid
+            velocity = ((x - ox) / dt, (y - oy) / dt, (z - oz) / dt)
         direction = posture.direction
         if direction is None and old is not None:
             direction = old.direction  # unresolved mirror ambiguity: keep the last known axis for the ROI
-        outline = {name: (*view.centroid_px.tolist(), *view.tips_px.ravel().tolist(),
-                          2.0 * math.sqrt(max(float(view.eigenvalues[1]), 0.0)))
-                   for name, view in posture.views.items() if view is not None}
-        self._track = _Track(posture.t, posture.centroid_mm.copy(), direction,
+        outline: dict[str, tuple[float, float, float, float, float, float, float]] = {}
+        for name, view in posture.views.items():
+            if view is not None:
+                (cu, cv), ((u0, v0), (u1, v1)) = view.centroid_px.tolist(), view.tips_px.tolist()
+                outline[name] = (cu, cv, u0, v0, u1, v1, 2.0 * math.sqrt(max(float(view.eigenvalues[1]), 0.0)))
+        self._track = _Track(posture.t, (x, y, z), direction,
                              posture.length_mm if posture.length_mm is not None else (old.length_mm if old else None),
                              velocity, view_outline_px=outline)
 
@@ -370,6 +381,6 @@ class PostureTracker:
         if self._track is None:
             return
         self._track.lost_frames += 1
-        self._track.velocity = np.zeros(3)
+        self._track.velocity = (0.0, 0.0, 0.0)
         if self._track.lost_frames > self.settings.max_lost_frames:
             self._track = None

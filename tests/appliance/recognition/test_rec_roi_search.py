@@ -182,3 +182,18 @@ def test_tracker_reuses_a_views_noise_sigma_and_measures_it_again_periodically(
         pair = renderer.render(RobotPose(np.array([0.0, 2.0, 3.0]), np.array([1.0, 0.3, 0.4])))
         tracker.process(pair.images["p"], pair.images["q"], frame=10 + n, t=0.5 + 0.04 * n)
     assert [s for _, s, _ in passed] == [None, None]
+
+
+def test_roi_around_coordinates_equals_around_on_points() -> None:
+    rng = np.random.default_rng(3)
+    shape = (300, 260)
+    cases = [rng.uniform(-80.0, 380.0, (3, 2)) for _ in range(300)]
+    cases += [np.array([[5.0, 5.0], [np.nan, 7.0], [9.0, 9.0]]), np.array([[1.0, np.inf], [2.0, 3.0], [4.0, 5.0]])]
+    boxes = 0
+    for points in cases:
+        for margin in (0.0, 2.5, 24.0):
+            xs, ys = points[:, 0].tolist(), points[:, 1].tolist()
+            got = Roi.around_coordinates(tuple(xs), tuple(ys), margin, shape)
+            assert got == Roi.around(points, margin, shape)
+            boxes += got is not None
+    assert boxes > 500
