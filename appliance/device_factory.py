@@ -4,7 +4,7 @@ This is the one production module allowed to import ``drivers.loopback``. Real k
 (``drivers.transport.open_serial`` for the amplifier and the optical tracker, ``open_source`` for the
 X-ray grabbers). ``kind: loopback`` builds the fakes over REAL transports - the amplifier fake and the
 NDI tracker fake each on a pseudo-terminal (or a loopback TCP port), both X-ray planes rendered from
-the simulated world and streamed through the fake pyusb backend into the real USB grabber driver (or
+the simulated world (by a renderer in a child process, as the fluoroscope is another device) and streamed through the fake pyusb backend into the real USB grabber driver (or
 the in-process loopback grabber) - and the :class:`~appliance.sim_bench.SimBench` that ties them to one
 simulated world on one simulated clock. The appliance side (drivers, orchestrator) is the same in both cases.
 
@@ -162,13 +162,16 @@ def _connect_ots(url: str, device: OtsDevice, rom: bytes | str, rom_name: str) -
 
 
 # -- the whole session --------------------------------------------------------------------------------
-def open_devices(session: Session, robot: RobotSpec, coils: Any) -> Devices:
-    """Open (or, in simulation, build and open) every device of ``session``; the frame stream is started."""
+def open_devices(session: Session, robot: RobotSpec, coils: Any, *, separate_renderer: bool = True) -> Devices:
+    """Open (or, in simulation, build and open) every device of ``session``; the frame stream is started.
+
+    In simulation ``separate_renderer`` runs the X-ray renderer in a child process
+    (:mod:`drivers.loopback.render_process`; same images), False keeps it in this one."""
     config = session.config
     stack = contextlib.ExitStack()
     try:
         if config.is_simulation:
-            devices = _open_simulation(session, robot, coils, stack)
+            devices = _open_simulation(session, robot, coils, stack, separate_renderer)
         else:
             devices = _open_bench(session, coils, stack)
     except BaseException:
@@ -216,7 +219,8 @@ def _robot_mapping(robot: RobotSpec) -> dict[str, float]:
             "magnet_volume_mm3": robot.magnet_volume_mm3, "density_kg_m3": robot.density_kg_m3}
 
 
-def _open_simulation(session: Session, robot: RobotSpec, coils: Any, stack: contextlib.ExitStack) -> Devices:
+def _open_simulation(session: Session, robot: RobotSpec, coils: Any, stack: contextlib.ExitStack,
+                     separate_renderer: bool = True) -> Devices:
     from drivers.loopback.loopback_grabber import LoopbackFrameSource, LoopbackScene, make_usb_backend
     from drivers.loopback.world import SimWorld
     from drivers.loopback.xray_render import (
@@ -253,7 +257,13 @@ def _open_simulation(session: Session, robot: RobotSpec, coils: Any, stack: cont
     body = RobotBody(robot.length_mm, robot.diameter_mm, robot.tip_angle_deg, robot.attenuation_per_mm)
     phantom = VesselPhantom(world.vessel.sample(1.0), world.vessel.radius_mm, imaging.vessel_attenuation_per_mm)
     detector = ImagingSettings(photons_per_pixel=imaging.photons_per_pixel)
-    renderer = BiplaneRenderer(true_views, body, vessel=phantom, seed=sim.seed, settings=detector)
+    renderer: Any = BiplaneRenderer(true_views, body, vessel=phantom, seed=sim.seed, settings=detector)
+    if separate_renderer:
+        from drivers.loopback.render_process import RenderProcess
+
+        # The fluoroscope is another device on a bench: its rendering must not take the loop's GIL.
+        renderer = RenderProcess(renderer)
+        stack.callback(renderer.close)
     if config.calibration.source == "nominal":
         p = config.calibration.perturbation
         calibration = perturbed_calibration(true_views, p.rotation_deg, p.translation_mm, p.seed,
