@@ -63,19 +63,28 @@ class SimClock:
                 self._cond.notify_all()
             return self._t
 
+    def pause(self) -> None:
+        """From now on :attr:`released` stands still, until as many :meth:`resume` calls as pauses."""
+        with self._cond:
+            self._holds += 1
+
+    def resume(self) -> None:
+        with self._cond:
+            if self._holds <= 0:
+                raise RuntimeError("SimClock.resume without a pause")
+            self._holds -= 1
+            if not self._holds:
+                self._released = self._t
+                self._cond.notify_all()
+
     @contextlib.contextmanager
     def hold(self) -> Iterator[None]:
         """While inside, :attr:`released` does not move; on leaving it jumps to ``now()`` and wakes sleepers."""
-        with self._cond:
-            self._holds += 1
+        self.pause()
         try:
             yield
         finally:
-            with self._cond:
-                self._holds -= 1
-                if not self._holds:
-                    self._released = self._t
-                    self._cond.notify_all()
+            self.resume()
 
     def sleep(self, seconds: float) -> None:
         """Wait until the released clock has advanced ``seconds``, or at most ``seconds`` of real time."""
@@ -156,6 +165,7 @@ class SimBench:
         #: (t, max |measured current|) after every world step: what the coils really carried.
         self.current_trace: list[tuple[float, float]] = []
         self._step_lock = threading.Lock()
+        self._frames_held = False
         pose = world.pose
         self.history.append(clock.now(), pose.centroid_mm, pose.direction)
 
@@ -182,9 +192,22 @@ class SimBench:
             # The fake reflects the end of the step for whoever reads it next.
             self.current_trace.append((self.clock.now(), float(np.max(np.abs(self.measured_currents_a())))))
 
-    def advance_to(self, t_s: float) -> None:
+    def advance_to(self, t_s: float, *, release: bool = True) -> None:
+        """Step the world to ``t_s``. ``release=False`` keeps the frames of the step from the grabbers until
+        :meth:`release_frames` (the harness releases them once the frame loop waits for its pair)."""
+        if not release and not self._frames_held:
+            self.clock.pause()
+            self._frames_held = True
         if t_s > self.clock.now():
             self.step(t_s - self.clock.now())
+        if release:
+            self.release_frames()
+
+    def release_frames(self) -> None:
+        """Let the grabbers see the clock again after ``advance_to(..., release=False)`` (idempotent)."""
+        if self._frames_held:
+            self._frames_held = False
+            self.clock.resume()
 
     @contextlib.contextmanager
     def real_time(self, period_s: float = 0.004) -> Iterator[None]:

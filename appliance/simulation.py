@@ -5,7 +5,10 @@ the simulated clock; the harness steps the world (in pieces of ``substep_ms``, e
 amplifier fake's MEASURED coil currents, so the coils' L/R lag, slew limits and faults act on the robot)
 up to ``n / fps + loop_latency_ms`` and then runs one orchestrator step, which gets pair ``n`` through
 the real transports (fake USB grabbers -> pyusb -> USB grabber driver -> biplane pairing), recognises
-the robot, and commands the amplifier over its pty. The frames show the robot as it was at mid-exposure
+the robot, and commands the amplifier over its pty. The grabbers see the frames of a world step only
+when the loop asks for its pair (as on a bench, where the loop is waiting when a pair comes in), so the
+measured latency from a pair on the host to the command written is the appliance's, not the harness's;
+the X-ray renderer runs in a child process (another device on a bench). The frames show the robot as it was at mid-exposure
 (the world keeps a short pose history), so the modelled latency between exposure and command acts on
 the loop as a real one would. Simulated time does not depend on how long the host takes: the run is
 faster than real time when a step takes less than ``1 / fps`` of wall time, slower otherwise
@@ -25,6 +28,7 @@ import math
 import time
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -37,6 +41,7 @@ from appliance.recognition import PostureTracker
 from appliance.robots import load_robots, select_robot
 from appliance.session_config import Session
 from appliance.sim_bench import SimBench
+from drivers.biplane_pairing import BiplanePair, BiplaneStream
 
 log = logging.getLogger(__name__)
 
@@ -104,6 +109,37 @@ def path_distance(points: np.ndarray, point: np.ndarray) -> float:
     return float(np.min(np.linalg.norm(point - (a + t[:, None] * seg), axis=1)))
 
 
+class _ReleasingStream:
+    """The biplane stream as the harness hands it to the orchestrator.
+
+    Asking for a pair first releases the frames of the world step just done
+    (:meth:`SimBench.release_frames`): on a bench the loop is waiting when a pair comes in, and here a
+    pair released at the end of the step could otherwise reach the host while the harness is still on
+    its way back to the loop, a wait that would count as loop latency. Then it waits for the pair the
+    step is for (number ``expect``, the grabbers having started at simulated t = 0): the newest pair
+    ready at that moment is the previous one (it arrived while the loop was busy with the one before),
+    and taking it would put the loop a whole frame behind the modelled latency, for good.
+    """
+
+    def __init__(self, stream: BiplaneStream, bench: SimBench) -> None:
+        self._stream = stream
+        self._bench = bench
+        self.expect: int | None = None
+        self.stale = 0           # pairs older than the one the step was for, passed over
+
+    def next_pair(self, timeout_s: float) -> BiplanePair:
+        self._bench.release_frames()
+        deadline = time.monotonic() + timeout_s
+        while True:
+            pair = self._stream.next_pair(max(deadline - time.monotonic(), 0.0))
+            if self.expect is None or pair.number >= self.expect:
+                return pair
+            self.stale += 1
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._stream, name)
+
+
 class Simulation:
     """A whole simulated session: devices (fakes on real transports), appliance stack and harness."""
 
@@ -121,8 +157,9 @@ class Simulation:
             assert self.devices.sim is not None
             self.bench: SimBench = self.devices.sim
             self.follower = PathFollower(self.path, config.control)
+            self.frames = _ReleasingStream(self.devices.frames, self.bench)
             self.orchestrator = Orchestrator(
-                frames=self.devices.frames, amplifier=self.devices.amplifier,
+                frames=self.frames, amplifier=self.devices.amplifier,
                 tracker=PostureTracker(self.devices.calibration,
                                        recognition_settings(config, self.devices.calibration)),
                 follower=self.follower,
@@ -188,10 +225,11 @@ class Simulation:
                 target = frame / fps + latency
                 while pending and start + pending[0][0] <= target:
                     at, name = pending.pop(0)
-                    bench.advance_to(start + at)
+                    bench.advance_to(start + at, release=False)
                     self.inject(name)
                     fault_times[name] = bench.clock.now()
-                bench.advance_to(target)
+                bench.advance_to(target, release=False)
+                self.frames.expect = frame
                 report = orchestrator.step()
                 pose = bench.world.pose
                 sample = TruthSample(bench.clock.now(), pose.centroid_mm,
@@ -208,6 +246,8 @@ class Simulation:
                     on_step(report, sample)
                 frame = max(frame + 1, (report.frame or 0) + 1)
         finally:
+            self.frames.expect = None
+            bench.release_frames()
             wall = time.perf_counter() - wall_start
             end = bench.clock.now()
             with bench.real_time():
