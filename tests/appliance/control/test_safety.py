@@ -69,3 +69,14 @@ def test_settings_are_validated() -> None:
     with pytest.raises(ConfigError, match="zero_after_lost_frames"):
         validate_model(SafetySettings, {"hold_after_lost_frames": 5, "zero_after_lost_frames": 5}, "sim.yaml",
                        key_prefix="safety")
+
+
+def test_hold_keeps_the_direction_of_the_last_non_zero_field_whatever_its_form() -> None:
+    supervisor = SafetySupervisor(SafetySettings(hold_after_lost_frames=0, hold_field_t=0.5e-3))
+    oblique = [3e-4, 0.0, -4e-4]   # a list: taken as float64, direction (0.6, 0, -0.8)
+    run = supervisor.update(0.0, True, oblique, [0, 0, 0])
+    assert run.field_T.dtype == np.float64 and run.force_N.dtype == np.float64
+    supervisor.update(0.1, True, np.zeros(3), np.zeros(3))   # a zero field leaves the direction as it was
+    held = supervisor.update(0.2, False)
+    assert held.mode is Mode.HOLD
+    np.testing.assert_allclose(held.field_T, [0.3e-3, 0.0, -0.4e-3], rtol=1e-12)
