@@ -14,10 +14,9 @@ once per full-frame detection on a handful of blobs: its distances are one compi
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-
-import math
 
 import numpy as np
 

@@ -5,7 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from appliance.geometry import Calibration, View, epipolar_distance_px, fundamental_matrix
+from appliance.geometry import (
+    Calibration,
+    View,
+    epipolar_distance_px,
+    fundamental_matrix,
+)
 from appliance.recognition.correspondence import pair_candidates
 
 SIZE = (640, 480)
