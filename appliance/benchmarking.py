@@ -253,9 +253,8 @@ def _control_step(chain: tuple[PathFollower, SafetySupervisor, CurrentAllocator]
     else:
         decision = safety.update(t, False, None, None, None)
         position = np.zeros(3)
-    field_norm = math.sqrt(float(decision.field_T @ decision.field_T))
-    moment = moment_am2 * (decision.field_T / field_norm if field_norm > 0 else np.array([0.0, 0.0, 1.0]))
-    return allocator.allocate(position, decision.field_T, decision.force_N, moment, commanded, dt)
+    # The moment along the requested field (the robot aligns with it), normalised inside the kernel.
+    return allocator.allocate_aligned(position, decision.field_T, decision.force_N, moment_am2, commanded, dt)
 
 
 def profile_rows(stats: pstats.Stats, pairs: int, top: int = 15) -> list[dict[str, Any]]:
