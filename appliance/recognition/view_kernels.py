@@ -490,7 +490,7 @@ def _side_baseline(smooth, wy0, wx0, hh, ww, ox, oy, ax, ay, lo_s, nb, side_t): 
 @kernel
 def _end_stops(smooth, wy0, wx0, ys, xs, n, s_of, s_lo, s_hi, tolerance, fade_step, side, side_s0):  # pragma: no cover
     """How far (px along the axis) the body may extend beyond each end of its core: ``(beyond s_hi,
-    beyond s_lo, the body's half-width)``, infinite where nothing lies beyond.
+    beyond s_lo)``, infinite where nothing lies beyond.
 
     Beyond each end of the core the body can only fade: a cone's attenuation falls steadily to its
     apex, a flat end's within the blur. Walking outward in 1-px slices, the body ends where the
