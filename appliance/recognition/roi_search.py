@@ -10,6 +10,7 @@ the whole chain is one compiled call (:func:`.roi_kernels.search_view`) and the 
 from __future__ import annotations
 
 import math
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -29,7 +30,8 @@ from appliance.recognition.settings import RecognitionSettings
 
 _N_LEVELS = len(_LEVELS)
 _OUT_SIZE = roi_kernels.OUT_SIZE + 2 * _N_LEVELS
-_R = roi_kernels.REACH
+_CENTROID, _AXIS, _TIPS = roi_kernels.CENTROID, roi_kernels.AXIS, roi_kernels.TIPS
+T = TypeVar("T")
 
 
 def find_in_roi(image: np.ndarray, log_bg: np.ndarray | LogBackground, roi: Roi, settings: RecognitionSettings,
@@ -58,18 +60,48 @@ def _general(image: np.ndarray, log_bg: np.ndarray | LogBackground, roi: Roi, se
     return near[0], features(near[0], settings)
 
 
+def _kernel_settings(settings: RecognitionSettings) -> tuple:
+    """The settings as :func:`.roi_kernels.search_view` takes them, cached per settings object (frozen)."""
+    cached = _KERNEL_SETTINGS.get(id(settings))
+    if cached is not None and cached[0] is settings:
+        return cached[1]
+    params, ring_outer, ring_inner, near = _refine_parameters(settings)
+    value = (_log_table(float(settings.dark_level)), settings.detect_sigma,
+             settings.core_fraction * settings.min_peak_attenuation, int(settings.min_pixels), params, ring_outer,
+             ring_inner, near, float(settings.gate_px), float(settings.axis_saturation),
+             float(settings.head_ramp_ratio), float(settings.head_min_ramp_px))
+    if len(_KERNEL_SETTINGS) > 16:
+        _KERNEL_SETTINGS.clear()
+    _KERNEL_SETTINGS[id(settings)] = (settings, value)
+    return value
+
+
+_KERNEL_SETTINGS: dict[int, tuple[RecognitionSettings, tuple]] = {}
+
+
+def _frozen(cls: type[T], fields: dict[str, Any]) -> T:
+    """An instance of the frozen dataclass ``cls`` holding ``fields`` (every field, by name), made without
+    its generated ``__init__``: that one sets each field through ``object.__setattr__`` (~3 us for a
+    :class:`Blob` or a :class:`Features2D`, one of each per view and frame). Neither class has a
+    ``__post_init__``; the tests compare every field with the ones ``__init__`` builds."""
+    instance = object.__new__(cls)
+    instance.__dict__.update(fields)
+    return instance
+
+
 def _compiled(image: np.ndarray, log_bg: LogBackground, roi: Roi, settings: RecognitionSettings,
               predicted_px: tuple[float, float], sigma: float | None) -> tuple[Blob, Features2D] | None | bool:
     """One compiled call; False where its gate test was too close to call (the caller takes the general path)."""
-    params, ring_outer, ring_inner, near = _refine_parameters(settings)
+    (table, detect_sigma, floor, min_pixels, params, ring_outer, ring_inner, near, gate_px, axis_saturation,
+     head_ramp_ratio, head_min_ramp_px) = _kernel_settings(settings)
     known = float(sigma) if sigma is not None and math.isfinite(sigma) and sigma > 0 else 0.0
     out = np.empty(_OUT_SIZE)
+    x0, y0 = roi.x0, roi.y0
     status, weights, mask = roi_kernels.search_view(
-        image, roi.y0, roi.y1, roi.x0, roi.x1, log_bg.coarse, log_bg.fy, log_bg.fx, _log_table(float(settings.dark_level)),
-        view_kernels.GAUSSIAN_5, settings.detect_sigma, _SMOOTH_NOISE_GAIN,
-        settings.core_fraction * settings.min_peak_attenuation, known, settings.min_pixels, MAX_CANDIDATES * 3,
-        MAX_CANDIDATES, params, ring_outer, ring_inner, near, predicted_px[0], predicted_px[1], settings.gate_px,
-        settings.axis_saturation, _LEVELS_ARRAY, settings.head_ramp_ratio, settings.head_min_ramp_px, out)
+        image, y0, roi.y1, x0, roi.x1, log_bg.coarse, log_bg.fy, log_bg.fx, table, view_kernels.GAUSSIAN_5,
+        detect_sigma, _SMOOTH_NOISE_GAIN, floor, known, min_pixels, MAX_CANDIDATES * 3, MAX_CANDIDATES, params,
+        ring_outer, ring_inner, near, predicted_px[0], predicted_px[1], gate_px, axis_saturation, _LEVELS_ARRAY,
+        head_ramp_ratio, head_min_ramp_px, out)
     if status == roi_kernels.NOT_FOUND:
         return None
     if status == roi_kernels.BORDERLINE:
@@ -78,15 +110,19 @@ def _compiled(image: np.ndarray, log_bg: LogBackground, roi: Roi, settings: Reco
         raise ValueError("weights sum to zero or less")
     (wy0, wy1, wx0, wx1, height, baseline, strength, cx, cy, edge, minor, clutter, count, used_sigma,
      _, _, _, _, _, _, _, _, l1, l2, axis_sigma, head, ramp_plus, ramp_minus, *reaches) = out.tolist()
-    window = Roi(roi.x0 + int(wx0), roi.y0 + int(wy0), roi.x0 + int(wx1), roi.y0 + int(wy1))
+    window = Roi(x0 + int(wx0), y0 + int(wy0), x0 + int(wx1), y0 + int(wy1))
     pixel_count = int(count)
     # As segmentation._blob_from_component builds it (a cylinder's chord profile has variance r^2 / 4).
-    blob = Blob(window=window, weights=weights, mask=mask.view(bool), pixel_count=pixel_count, peak=height,
-                baseline=baseline, sigma=used_sigma, strength=strength, centroid_px=(window.x0 + cx, window.y0 + cy),
-                touches_border=bool(edge), width_px=4.0 * math.sqrt(max(minor / strength, 0.0625)), clutter=clutter)
+    blob = _frozen(Blob, {
+        "window": window, "weights": weights, "mask": mask.view(bool), "pixel_count": pixel_count, "peak": height,
+        "baseline": baseline, "sigma": used_sigma, "strength": strength,
+        "centroid_px": (window.x0 + cx, window.y0 + cy), "touches_border": bool(edge),
+        "width_px": 4.0 * math.sqrt(max(minor / strength, 0.0625)), "clutter": clutter})
     # As features.weighted_features builds them; the arrays are views of this call's own output.
-    reach = (dict(zip(_LEVELS, reaches[:_N_LEVELS])), dict(zip(_LEVELS, reaches[_N_LEVELS:])))
-    feat = Features2D(out[roi_kernels.CENTROID:roi_kernels.CENTROID + 2], out[roi_kernels.AXIS:roi_kernels.AXIS + 2],
-                      (l1, l2), out[roi_kernels.TIPS:roi_kernels.TIPS + 4].reshape(2, 2), pixel_count,
-                      None if head < 0 else int(head), (ramp_plus, ramp_minus), reach, axis_sigma)
+    feat = _frozen(Features2D, {
+        "centroid": out[_CENTROID:_CENTROID + 2], "axis": out[_AXIS:_AXIS + 2], "eigenvalues": (l1, l2),
+        "tips": out[_TIPS:_TIPS + 4].reshape(2, 2), "pixel_count": pixel_count,
+        "head_index": None if head < 0 else int(head), "ramp_px": (ramp_plus, ramp_minus),
+        "reach": (dict(zip(_LEVELS, reaches[:_N_LEVELS])), dict(zip(_LEVELS, reaches[_N_LEVELS:]))),
+        "axis_sigma_rad": axis_sigma})
     return blob, feat
