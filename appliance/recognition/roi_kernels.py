@@ -137,7 +137,8 @@ def search_view(image, y0, y1, x0, x1, coarse, fy, fx, log_table, g, detect_sigm
     for end in range(2):
         long_ = ramp_plus if end == 0 else ramp_minus
         short = ramp_minus if end == 0 else ramp_plus
-        floor_short = 1e-6 if 1e-6 > short else short  # Python's max(short, 1e-6), NaN included
+        # Python's max(short, 1e-6) as features.py evaluates it (NaN included), not numba's max.
+        floor_short = 1e-6 if 1e-6 > short else short  # noqa: FURB136
         if long_ >= head_ramp_ratio * floor_short and long_ - short >= head_min_ramp_px:
             head = end
     px = cx + (x0 + int(out[REFINED + 2]))

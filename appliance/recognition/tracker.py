@@ -4,7 +4,8 @@
 and returns a :class:`Posture`. While the robot is tracked, each view is searched only inside a region
 of interest (ROI) around the constant-velocity prediction of the robot's image, and the background
 estimate is a slice of the one computed at the last full-frame detection, so a steady-state frame
-touches only a few thousand pixels per view. When the ROI search fails (nothing plausible, the blob
+touches only a few thousand pixels per view (:func:`.roi_search.find_in_roi`: one compiled call per
+view for the blob and its features). When the ROI search fails (nothing plausible, the blob
 reaches the ROI's edge, or it is far from the prediction), the frame falls back to a full-frame
 detection, where the background is re-estimated and candidate blobs of the two views are paired by
 the epipolar constraint. A frame where that fails too, or whose object is not robot-like
