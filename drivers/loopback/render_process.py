@@ -74,7 +74,8 @@ class RenderProcess:
             self._offsets[name] = size                       # in pixels
             size += int(np.prod(self._shapes[name]))
         folder = "/dev/shm" if os.path.isdir("/dev/shm") else None
-        handle = tempfile.NamedTemporaryFile(prefix="xray-render-", suffix=".u16", dir=folder, delete=False)
+        # Closed below once sized: the child and the memmap open it by name.
+        handle = tempfile.NamedTemporaryFile(prefix="xray-render-", suffix=".u16", dir=folder, delete=False)  # noqa: SIM115
         self.shm_path = handle.name
         self._lock = threading.Lock()
         self._closed = False
@@ -174,7 +175,7 @@ def _serve(shm_path: str, requests: BinaryIO, replies: BinaryIO) -> int:
                 count = int(np.prod(shapes[name]))
                 frames[offsets[name]:offsets[name] + count] = image.reshape(-1)
             _send(replies, {"truth": rendered.truth, "head_mm": rendered.head_mm, "tail_mm": rendered.tail_mm})
-        except Exception as err:   # reported to the parent, which raises it there
+        except Exception as err:  # noqa: BLE001 - reported to the parent, which raises it there
             _send(replies, {"error": f"{type(err).__name__}: {err}"})
 
 

@@ -13,9 +13,15 @@ import numpy as np
 import pytest
 
 from drivers.loopback.render_process import RenderProcess, RenderProcessError
-from drivers.loopback.xray_render import BiplaneRenderer, RobotBody, RobotPose, VesselPhantom, biplane_views
+from drivers.loopback.xray_render import (
+    BiplaneRenderer,
+    RobotBody,
+    RobotPose,
+    VesselPhantom,
+    biplane_views,
+)
 
-SMALL = dict(fov_mm=(150.0 * 191 / 768, 130.0 * 167 / 672), image_size=(191, 167))
+SMALL = {"fov_mm": (150.0 * 191 / 768, 130.0 * 167 / 672), "image_size": (191, 167)}
 BODY = RobotBody(length_mm=10.0, diameter_mm=2.0, tip_angle_deg=20.0, attenuation_per_mm=1.0)
 
 
