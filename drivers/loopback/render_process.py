@@ -11,9 +11,9 @@ child writes; only the pose and the small truth record cross the pipe.
 The child is ``python -m drivers.loopback.render_process SHM_FILE``: it reads the pickled renderer,
 then length-prefixed pickled requests, from its stdin and answers on its stdout. It ignores Ctrl-C
 (the parent decides when the session ends) and exits at the end of its stdin, so it cannot outlive
-its parent: when the parent closes the pipe, or dies, the child ends. The renderer travels whole
-(its noise generator's state included), so the images are the ones the same renderer would have
-made in-process, in the same order.
+its parent: when the parent closes the pipe, or dies, the child ends and removes the frames file.
+The renderer travels whole (its noise generator's state included), so the images are the ones the
+same renderer would have made in-process, in the same order.
 
 Not modelled: nothing changes for the scene; rendering is still one exposure at a time, on request.
 """
@@ -168,6 +168,10 @@ def _serve(shm_path: str, requests: BinaryIO, replies: BinaryIO) -> int:
         try:
             pose = _receive(requests)
         except EOFError:
+            # The parent closed the pipe or died: the frames file goes with us (the parent's close removes
+            # it too; whoever is first).
+            with contextlib.suppress(OSError):
+                os.unlink(shm_path)
             return 0
         try:
             rendered = renderer.render(pose)

@@ -88,7 +88,7 @@ def test_the_child_does_not_outlive_its_parent(tmp_path, how: str) -> None:
         remote = RenderProcess(BiplaneRenderer(biplane_views(fov_mm=(40.0, 35.0), image_size=(64, 56)), None))
         try:
             remote.render(None)
-            print(remote.process.pid, flush=True)
+            print(remote.process.pid, remote.shm_path, flush=True)
             time.sleep(60)
         finally:
             remote.close()
@@ -96,7 +96,8 @@ def test_the_child_does_not_outlive_its_parent(tmp_path, how: str) -> None:
     parent = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True,
                               start_new_session=True)
     try:
-        child = int(parent.stdout.readline())
+        pid, shm_path = parent.stdout.readline().split()
+        child = int(pid)
         if how == "sigint":
             os.killpg(parent.pid, signal.SIGINT)     # what a terminal's Ctrl-C does
         else:
@@ -106,6 +107,7 @@ def test_the_child_does_not_outlive_its_parent(tmp_path, how: str) -> None:
         while time.monotonic() < deadline and _alive(child):
             time.sleep(0.05)
         assert not _alive(child), "the render child outlived its parent"
+        assert not os.path.exists(shm_path), "the frames file outlived the session"
     finally:
         if parent.poll() is None:
             parent.kill()
