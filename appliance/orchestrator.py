@@ -113,7 +113,7 @@ class Orchestrator:
         self._n = allocator.model.n
         self._commanded = np.zeros(self._n)
         self._position: np.ndarray | None = None
-        self._moment_dir: np.ndarray | None = None
+        self._moment_dir: tuple[float, float, float] | None = None
         self._last_tracked: tuple[float, np.ndarray] | None = None
         self._last_pair_t = 0.0
         self._ots_frame = -1
@@ -265,13 +265,16 @@ class Orchestrator:
             return self._latch("safety", decision.reason or "safety stop", stages=stages)
 
         mark = time.perf_counter()
-        field_norm = math.sqrt(float(decision.field_T @ decision.field_T))
+        # The robot's moment lies along the requested field (it aligns within microseconds); with no
+        # field, along the last one. Plain floats here, the normalisation inside the allocation kernel.
+        fx, fy, fz = decision.field_T.tolist()
+        field_norm = math.sqrt(fx * fx + fy * fy + fz * fz)
         if field_norm > 0.0:
-            self._moment_dir = decision.field_T / field_norm
+            self._moment_dir = (fx / field_norm, fy / field_norm, fz / field_norm)
         position = self._position if self._position is not None else np.zeros(3)
-        moment = self.moment_am2 * (self._moment_dir if self._moment_dir is not None else np.array([0.0, 0.0, 1.0]))
-        allocation = self.allocator.allocate(position, decision.field_T, decision.force_N, moment, self._commanded,
-                                             1.0 / self.settings.fps)
+        allocation = self.allocator.allocate_aligned(
+            position, decision.field_T, decision.force_N, self.moment_am2, self._commanded, 1.0 / self.settings.fps,
+            zero_field_direction=self._moment_dir if self._moment_dir is not None else (0.0, 0.0, 1.0))
         stages["allocation"] = (time.perf_counter() - mark) * 1e6
 
         # The command goes out now; everything that can wait (safety events, the report, listeners such
