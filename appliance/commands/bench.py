@@ -218,6 +218,8 @@ def measure(frames: int = 300, size: int = 1024, robot_id: int = 1, speed_mm_s: 
     result.notes.append("frames: rendered ahead, untimed; before each measured pair, the pair arrives in the host's "
                         "frame buffers by np.copyto (the memory floor, 8 MB of cache traffic per 1024^2 pair, as a "
                         "grabber's DMA), so every stage starts on the caches a new frame leaves")
+    result.notes.append("ROI: the steady-state search is one compiled call per view (attenuation, candidates, "
+                        "refinement, gate and weighted features), timed as segmentation; its features row is 0")
     result.notes.append("loop = frame available -> SET_CURRENTS written to the pty (ROI recognition, control, "
                         "allocation, the driver's limit check and encoding, the write call); the line's transfer "
                         "and the acknowledgement are not in it ('amplifier: acked' is the round trip)")
