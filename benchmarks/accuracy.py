@@ -43,6 +43,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from appliance.compiled import warm_up_all  # noqa: E402
 from appliance.geometry import Calibration, View  # noqa: E402
 from appliance.recognition import PostureTracker, RecognitionSettings  # noqa: E402
 from appliance.robots import load_robots  # noqa: E402
@@ -234,6 +235,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="measure the steady-state (ROI) path: each pose follows a frame one step back")
     parser.add_argument("--json", type=Path, help="also write the per-robot summaries (and per-frame scores) here")
     args = parser.parse_args(argv)
+    warm_up_all()  # the kernels compiled before the first timed frame (its ms per pair line)
 
     robots = load_robots()
     views = biplane_views()

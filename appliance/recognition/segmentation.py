@@ -14,9 +14,10 @@ the public API (:class:`Roi`, :class:`Blob`) and says what each step means.
 
 Thresholds are relative: candidates stand out of the noise (``detect_sigma`` robust standard
 deviations), the robot's core is the part above ``core_fraction`` of its own peak (which excludes the
-weaker contrast-filled vessel around it), and the local baseline under the robot (vessel, residual field)
-is the median attenuation of a ring around the core. The robot's weights are the attenuation above that
-baseline on a support slightly wider than the visible body, so blurred rims and the faint cone tip count.
+weaker contrast-filled vessel around it), and the body is what stands above the attenuation beside it
+(vessel, residual field), slice by slice along its axis. The robot's weights are the attenuation above
+the background interpolated under it, on a support slightly wider than the visible body, so blurred
+rims and the faint cone tip count.
 """
 from __future__ import annotations
 
@@ -211,10 +212,12 @@ def _blob_from_component(a: np.ndarray, smooth: np.ndarray, labels: np.ndarray, 
     """Refine one detected component into a robot candidate, or None if it is not plausible.
 
     The robot's core (strong part connected to the peak) gives a provisional axis; the body's full
-    extent is the part above the local baseline (the median of a ring around the core) connected to
-    the core, limited to a capsule along that axis so a vessel it crosses cannot leak in, and cut
-    where, beyond either end of the core, it stops fading or gets wider than along the core (what
-    continues at a steady level is something else, such as a vessel the robot touches). The
+    extent is the part above the attenuation beside it, slice by slice along that axis (a vessel
+    crossing or running along the robot raises that baseline only where it is), connected to the
+    core, limited to a capsule along the axis so a vessel it crosses cannot leak in, and cut where,
+    beyond either end of the core, its contrast stops fading or it gets wider than along the core
+    (what continues at a steady level is something else, such as a vessel the robot touches). The
+    median of a ring around the core is the blob's single ``baseline`` (its ``peak`` is above it). The
     background under the body is then interpolated across the axis, from the pixels just outside
     either long side of a rectangle around the body: exact for a vessel crossing the robot, and only
     slightly low for a vessel the robot lies in. The weights are the attenuation above that
