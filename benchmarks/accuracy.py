@@ -47,7 +47,7 @@ from appliance.compiled import warm_up_all  # noqa: E402
 from appliance.geometry import Calibration, View  # noqa: E402
 from appliance.recognition import PostureTracker, RecognitionSettings  # noqa: E402
 from appliance.robots import load_robots  # noqa: E402
-from drivers.loopback.scene_builders import random_vessel, smooth_centreline  # noqa: E402
+from drivers.loopback.scene_builders import S_BEND_CENTRELINE_MM, random_vessel, smooth_centreline  # noqa: E402
 from drivers.loopback.xray_render import (  # noqa: E402
     BiplaneRenderer,
     ImagingSettings,
@@ -57,9 +57,7 @@ from drivers.loopback.xray_render import (  # noqa: E402
     biplane_views,
 )
 
-#: The vessel phantom: an S-bend through the field (mm), diluted iodine contrast well below the robots'.
-VESSEL_CENTRELINE_MM = [[-60.0, -20.0, -6.0], [-40.0, -23.0, -2.0], [-20.0, -12.0, 4.0], [0.0, 0.0, 6.0],
-                        [20.0, 12.0, 2.0], [40.0, 20.0, -4.0], [60.0, 16.0, -6.0]]
+#: The vessel phantom on the S-bend: its radius and its diluted iodine contrast, well below the robots'.
 VESSEL_RADIUS_MM = 2.5
 VESSEL_ATTENUATION_PER_MM = 0.06
 POSITION_RANGE_MM = 30.0
@@ -189,7 +187,7 @@ def run_empty(n: int, seed: int, calibration: Calibration, views: dict[str, Any]
     made_up = []
     for i in range(n):
         rng = np.random.default_rng([seed, 1000 + i])
-        vessel = (VesselPhantom(smooth_centreline(VESSEL_CENTRELINE_MM), VESSEL_RADIUS_MM, VESSEL_ATTENUATION_PER_MM)
+        vessel = (VesselPhantom(smooth_centreline(S_BEND_CENTRELINE_MM), VESSEL_RADIUS_MM, VESSEL_ATTENUATION_PER_MM)
                   if i == 0 else random_vessel(rng))
         pair = BiplaneRenderer(views, None, vessel=vessel, settings=imaging, seed=seed + i).render(None)
         tracker.reset()
@@ -240,7 +238,7 @@ def main(argv: list[str] | None = None) -> int:
     robots = load_robots()
     views = biplane_views()
     calibration = true_calibration(views)
-    phantom = VesselPhantom(smooth_centreline(VESSEL_CENTRELINE_MM), VESSEL_RADIUS_MM,
+    phantom = VesselPhantom(smooth_centreline(S_BEND_CENTRELINE_MM), VESSEL_RADIUS_MM,
                             0.0 if args.no_vessel else VESSEL_ATTENUATION_PER_MM)
     imaging = ImagingSettings()
     results: dict[int, dict[str, dict[str, Any]]] = {}

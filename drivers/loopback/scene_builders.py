@@ -7,6 +7,12 @@ import numpy as np
 
 from drivers.loopback.xray_render import TrueView, VesselPhantom
 
+#: Control points (mm) of the default vessel of config/vessel.yaml: an S-bend through the field, so that
+#: robots at random poses lie over it in some frames. Tests and the accuracy benchmark build their
+#: phantom on it (``smooth_centreline``).
+S_BEND_CENTRELINE_MM = [[-60.0, -20.0, -6.0], [-40.0, -23.0, -2.0], [-20.0, -12.0, 4.0], [0.0, 0.0, 6.0],
+                        [20.0, 12.0, 2.0], [40.0, 20.0, -4.0], [60.0, 16.0, -6.0]]
+
 
 def smooth_centreline(points: np.ndarray | list[list[float]], step_mm: float = 1.0) -> np.ndarray:
     """Densely resampled polyline through the control points (Catmull-Rom), so the tube bends smoothly."""

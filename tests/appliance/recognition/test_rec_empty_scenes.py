@@ -12,7 +12,7 @@ import pytest
 
 from appliance.geometry import Calibration, View
 from appliance.recognition import PostureTracker, RecognitionSettings
-from drivers.loopback.scene_builders import random_vessel, smooth_centreline
+from drivers.loopback.scene_builders import S_BEND_CENTRELINE_MM, random_vessel, smooth_centreline
 from drivers.loopback.xray_render import (
     BiplaneRenderer,
     ImagingSettings,
@@ -23,9 +23,6 @@ from drivers.loopback.xray_render import (
     biplane_views,
 )
 
-#: The default vessel of config/vessel.yaml (control points; a polyline is enough at these sizes).
-DEFAULT_VESSEL_MM = [[-60.0, -20.0, -6.0], [-40.0, -23.0, -2.0], [-20.0, -12.0, 4.0], [0.0, 0.0, 6.0],
-                     [20.0, 12.0, 2.0], [40.0, 20.0, -4.0], [60.0, 16.0, -6.0]]
 IMAGE_SIZE = (256, 224)
 SETTINGS = RecognitionSettings(dark_level=ImagingSettings().dark_level)
 
@@ -59,7 +56,7 @@ def test_twenty_random_empty_scenes_give_no_posture(views: dict[str, TrueView]) 
     reasons = set()
     for seed in range(20):
         rng = np.random.default_rng(1000 + seed)
-        vessel = (VesselPhantom(smooth_centreline(np.asarray(DEFAULT_VESSEL_MM)), 2.5, 0.06) if seed % 5 == 0
+        vessel = (VesselPhantom(smooth_centreline(np.asarray(S_BEND_CENTRELINE_MM)), 2.5, 0.06) if seed % 5 == 0
                   else random_vessel(rng))
         renderer = BiplaneRenderer(views, None, vessel=vessel, settings=ImagingSettings(), seed=seed)
         tracker = PostureTracker(calibration, SETTINGS)
@@ -92,7 +89,7 @@ def test_foreshortened_vessel_is_rejected_per_mm_of_path(views: dict[str, TrueVi
 
 @pytest.fixture(scope="module")
 def robot_scene(views: dict[str, TrueView]) -> tuple[Calibration, BiplaneRenderer]:
-    vessel = VesselPhantom(smooth_centreline(np.asarray(DEFAULT_VESSEL_MM)), 2.5, 0.06)
+    vessel = VesselPhantom(smooth_centreline(np.asarray(S_BEND_CENTRELINE_MM)), 2.5, 0.06)
     body = RobotBody(10.0, 2.0, 20.0, 2.5)  # robot 1 of the seed paper
     return _calibration(views), BiplaneRenderer(views, body, vessel=vessel, settings=ImagingSettings(), seed=5)
 
@@ -144,7 +141,7 @@ def test_centroid_over_a_vessel_in_one_view_comes_from_the_clean_view(views: dic
     around the default vessel: where one view's blob merges with the vessel, the clean view's ray places
     the centroid. Without it (clutter never detected) the same frames are several times worse."""
     calibration = _calibration(_sim_views((384, 336)))
-    centreline = smooth_centreline(np.asarray(DEFAULT_VESSEL_MM))
+    centreline = smooth_centreline(np.asarray(S_BEND_CENTRELINE_MM))
     renderer = BiplaneRenderer(_sim_views((384, 336)), RobotBody(30.0, 5.0, 15.0, 0.15 * 2.5 + 0.85 * 0.025),
                                vessel=VesselPhantom(centreline, 2.5, 0.06), settings=ImagingSettings(), seed=2)
     blind = SETTINGS.model_copy(update={"max_clutter": 1e6})

@@ -13,7 +13,7 @@ from appliance.recognition import PostureTracker, RecognitionSettings, roi_searc
 from appliance.recognition import tracker as tracker_module
 from appliance.recognition.segmentation import Blob, Roi, log_background, segment
 from appliance.robots import load_robots
-from drivers.loopback.scene_builders import smooth_centreline
+from drivers.loopback.scene_builders import S_BEND_CENTRELINE_MM, smooth_centreline
 from drivers.loopback.xray_render import (
     BiplaneRenderer,
     ImagingSettings,
@@ -23,9 +23,6 @@ from drivers.loopback.xray_render import (
     biplane_views,
 )
 
-#: An S-bend through the field (the accuracy benchmark's phantom), so some robots lie over it.
-VESSEL_MM = [[-60.0, -20.0, -6.0], [-40.0, -23.0, -2.0], [-20.0, -12.0, 4.0], [0.0, 0.0, 6.0],
-             [20.0, 12.0, 2.0], [40.0, 20.0, -4.0], [60.0, 16.0, -6.0]]
 
 
 @pytest.fixture(scope="module")
@@ -42,7 +39,7 @@ def calibration(views: dict[str, object]) -> Calibration:
 def _rendered_views(views: dict[str, object], robot: int, pose: RobotPose, seed: int) -> dict[str, np.ndarray]:
     spec = load_robots()[robot]
     body = RobotBody(spec.length_mm, spec.diameter_mm, spec.tip_angle_deg, spec.attenuation_per_mm)
-    vessel = VesselPhantom(smooth_centreline(VESSEL_MM), 2.5, 0.06)
+    vessel = VesselPhantom(smooth_centreline(S_BEND_CENTRELINE_MM), 2.5, 0.06)
     renderer = BiplaneRenderer(views, body, vessel=vessel, settings=ImagingSettings(), seed=seed)
     return renderer.render(pose).images
 
