@@ -99,15 +99,15 @@ def _attenuation_computed_log(image, y0, y1, x0, x1, coarse, fy, fx, dark):  # p
 def _recorded_rois(scene: RenderedScene, frames: list, settings: RecognitionSettings) -> list:
     """Per frame, the (view index, Roi, LogBackground) the tracker searched (None for a full-frame frame)."""
     searched: list = []
-    original = tracker_module.segment
+    original = tracker_module.find_in_roi
 
-    def spy(image, log_bg, roi=None, settings=None, **kwargs):  # type: ignore[no-untyped-def]
+    def spy(image, log_bg, roi, settings, predicted_px, **kwargs):  # type: ignore[no-untyped-def]
         searched.append((image, roi, log_bg))
-        return original(image, log_bg, roi, settings, **kwargs)
+        return original(image, log_bg, roi, settings, predicted_px, **kwargs)
 
     tracker = PostureTracker(scene.calibration, settings)
     per_frame = []
-    tracker_module.segment = spy
+    tracker_module.find_in_roi = spy
     try:
         for n, (p, q) in enumerate(frames):
             searched.clear()
@@ -115,7 +115,7 @@ def _recorded_rois(scene: RenderedScene, frames: list, settings: RecognitionSett
             rois = [(0 if image is p else 1, roi, log_bg) for image, roi, log_bg in searched if roi is not None]
             per_frame.append(rois if tracker.last_search == "roi" and len(rois) == 2 else None)
     finally:
-        tracker_module.segment = original
+        tracker_module.find_in_roi = original
     return per_frame
 
 
