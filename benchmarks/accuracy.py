@@ -69,9 +69,6 @@ TRACK_FPS = 30.0
 ESTIMATORS = ("weighted", "paper")
 
 
-
-
-
 def true_calibration(views: dict[str, Any]) -> Calibration:
     return Calibration.from_views(*(View(n, v.K, v.dist, v.R, v.t, v.image_size) for n, v in
                                     (("p", views["p"]), ("q", views["q"]))))
