@@ -181,7 +181,8 @@ def _reconstruct_weighted(calibration: Calibration, feat_p: Features2D, feat_q: 
         ambiguous = True
         views = [name for name, f in feats.items()
                  if f.axis_sigma_rad is None or math.degrees(f.axis_sigma_rad) > s.max_axis_sigma_deg]
-        where = f" (the robot is seen nearly end-on in view {' and '.join(views)})" if views else ""
+        where = (f" (the robot is seen nearly end-on, or over another structure, in view {' and '.join(views)})"
+                 if views else "")
         reasons.append(f"the axis is uncertain by about {sigma_deg:.1f} deg{where}")
     d = out[kernels.OUT_DIRECTION:kernels.OUT_DIRECTION + 3].copy()
     centroid = out[kernels.OUT_CORRECTED:kernels.OUT_CORRECTED + 3].copy()

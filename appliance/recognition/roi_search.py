@@ -15,7 +15,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 from appliance.recognition import roi_kernels, view_kernels
-from appliance.recognition.features import _LEVELS, _LEVELS_ARRAY, Features2D, features
+from appliance.recognition.features import _LEVELS, _LEVELS_ARRAY, Features2D, clutter_axis_sigma_rad, features
 from appliance.recognition.segmentation import (
     _SMOOTH_NOISE_GAIN,
     MAX_CANDIDATES,
@@ -124,5 +124,6 @@ def _compiled(image: np.ndarray, log_bg: LogBackground, roi: Roi, settings: Reco
         "tips": out[_TIPS:_TIPS + 4].reshape(2, 2), "pixel_count": pixel_count,
         "head_index": None if head < 0 else int(head), "ramp_px": (ramp_plus, ramp_minus),
         "reach": (dict(zip(_LEVELS, reaches[:_N_LEVELS])), dict(zip(_LEVELS, reaches[_N_LEVELS:]))),
-        "axis_sigma_rad": axis_sigma})
+        "axis_sigma_rad": math.hypot(axis_sigma, clutter_axis_sigma_rad(clutter, pixel_count, height, strength,
+                                                                        l1, l2))})
     return blob, feat

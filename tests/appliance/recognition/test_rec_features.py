@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from appliance.recognition import Blob, Roi, axial_profile, paper_features_from_points, weighted_features
-from appliance.recognition.features import axis_sigma_rad
+from appliance.recognition.features import axis_sigma_rad, clutter_axis_sigma_rad
 
 
 def test_paper_estimator_on_a_hand_computable_cloud() -> None:
@@ -119,3 +119,16 @@ def test_axis_noise_estimate_matches_monte_carlo() -> None:
     predicted = axis_sigma_rad(np.where(support, clean, 0), f.centroid, f.axis,
                                f.eigenvalues[0] - f.eigenvalues[1], 0.2)
     assert float(np.std(angles)) == pytest.approx(predicted, rel=0.3)
+
+
+def test_background_clutter_widens_the_axis_uncertainty_of_a_stubby_body_most() -> None:
+    # A blob over another structure (background known to 12 % of the peak): a stubby body's axis (robot 4,
+    # elongation ~1.5) becomes uncertain by degrees, a long one's (robot 1, ~9) by a few tenths.
+    stubby = clutter_axis_sigma_rad(0.12, 65, 3.75, 0.5 * 65 * 3.75, 6.9, 3.2)
+    long_ = clutter_axis_sigma_rad(0.12, 800, 3.75, 0.5 * 800 * 3.75, 300.0, 4.0)
+    assert math.degrees(stubby) > 2.5 > 0.5 > math.degrees(long_) > 0.0
+    # It grows with the clutter, and a clean background adds nothing.
+    assert clutter_axis_sigma_rad(0.24, 65, 3.75, 0.5 * 65 * 3.75, 6.9, 3.2) == pytest.approx(2 * stubby)
+    assert clutter_axis_sigma_rad(0.0, 65, 3.75, 0.5 * 65 * 3.75, 6.9, 3.2) == 0.0
+    # A round blob: nothing added (its noise term already says the axis is unknown), no division by zero.
+    assert clutter_axis_sigma_rad(0.12, 65, 3.75, 100.0, 5.0, 5.0) == 0.0
