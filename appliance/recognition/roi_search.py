@@ -24,6 +24,7 @@ from appliance.recognition.segmentation import (
     Roi,
     _log_table,
     _refine_parameters,
+    body_width_px,
     segment,
 )
 from appliance.recognition.settings import RecognitionSettings
@@ -112,12 +113,12 @@ def _compiled(image: np.ndarray, log_bg: LogBackground, roi: Roi, settings: Reco
      _, _, _, _, _, _, _, _, l1, l2, axis_sigma, head, ramp_plus, ramp_minus, *reaches) = out.tolist()
     window = Roi(x0 + int(wx0), y0 + int(wy0), x0 + int(wx1), y0 + int(wy1))
     pixel_count = int(count)
-    # As segmentation._blob_from_component builds it (a cylinder's chord profile has variance r^2 / 4).
+    # As segmentation._blob_from_component builds it.
     blob = _frozen(Blob, {
         "window": window, "weights": weights, "mask": mask.view(bool), "pixel_count": pixel_count, "peak": height,
         "baseline": baseline, "sigma": used_sigma, "strength": strength,
         "centroid_px": (window.x0 + cx, window.y0 + cy), "touches_border": bool(edge),
-        "width_px": 4.0 * math.sqrt(max(minor / strength, 0.0625)), "clutter": clutter})
+        "width_px": body_width_px(minor, strength), "clutter": clutter})
     # As features.weighted_features builds them; the arrays are views of this call's own output.
     feat = _frozen(Features2D, {
         "centroid": out[_CENTROID:_CENTROID + 2], "axis": out[_AXIS:_AXIS + 2], "eigenvalues": (l1, l2),

@@ -207,6 +207,12 @@ def _refine_parameters(settings: RecognitionSettings) -> tuple[np.ndarray, np.nd
 _PARAMETERS: dict[int, tuple[RecognitionSettings, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]] = {}
 
 
+def body_width_px(minor_moment: float, strength: float) -> float:
+    """The body's diameter (px) from its weights' central moment across the axis: a cylinder's chord profile
+    ``2 sqrt(r^2 - t^2)`` has variance ``r^2 / 4`` across its axis, so ``D = 4 sqrt(mu / W)`` (at least 1 px)."""
+    return 4.0 * math.sqrt(max(minor_moment / strength, 0.0625))
+
+
 def _blob_from_component(a: np.ndarray, smooth: np.ndarray, labels: np.ndarray, label: int,
                          box: list[int], region: Roi, sigma: float, settings: RecognitionSettings) -> Blob | None:
     """Refine one detected component into a robot candidate, or None if it is not plausible.
@@ -231,11 +237,9 @@ def _blob_from_component(a: np.ndarray, smooth: np.ndarray, labels: np.ndarray, 
         return None
     wy0, wy1, wx0, wx1, height, baseline, strength, cx, cy, edge, minor, clutter, count = sc.tolist()
     window = Roi(region.x0 + int(wx0), region.y0 + int(wy0), region.x0 + int(wx1), region.y0 + int(wy1))
-    # A cylinder's chord profile 2 sqrt(r^2 - t^2) has variance r^2 / 4 across its axis.
     return Blob(window=window, weights=weights, mask=mask.view(bool), pixel_count=int(count), peak=height,
                 baseline=baseline, sigma=sigma, strength=strength, centroid_px=(window.x0 + cx, window.y0 + cy),
-                touches_border=bool(edge), width_px=4.0 * math.sqrt(max(minor / strength, 0.0625)),
-                clutter=clutter)
+                touches_border=bool(edge), width_px=body_width_px(minor, strength), clutter=clutter)
 
 
 def segment(image: np.ndarray, log_bg: np.ndarray | LogBackground, roi: Roi | None = None,
