@@ -208,6 +208,7 @@ class BenchResult:
 
     def targets(self) -> dict[str, dict[str, Any]]:
         roi = self.stages["roi"]["recognition"]
+        sim_p99 = (self.simulation or {}).get("latency_write_us", {}).get("p99")
 
         def check(value: float | None, target: float, at_least: bool = False) -> dict[str, Any]:
             met = None if value is None else (value >= target if at_least else value <= target)
@@ -216,7 +217,10 @@ class BenchResult:
                 "roi_p99_us": check(roi["p99"], TARGET_ROI_P99_US),
                 "baseline_ratio": check(self.baseline_ratio, TARGET_BASELINE_RATIO, at_least=True),
                 "cold_floor_ratio": check(self.cold_floor_ratio, TARGET_FLOOR_RATIO),
-                "loop_p99_us": check(self.loop_us["p99"], TARGET_LOOP_P99_US)}
+                "loop_p99_us": check(self.loop_us["p99"], TARGET_LOOP_P99_US),
+                # The loop target is for the closed loop in simulation; the in-process loop above is its
+                # lower bound (no world, no renderer, no tracker fake on the machine's two cores).
+                "sim_loop_p99_us": check(sim_p99, TARGET_LOOP_P99_US)}
 
     def to_json(self) -> dict[str, Any]:
         return {"config": self.config, "stages_us": self.stages, "baseline_us": self.baseline_us,
