@@ -1012,8 +1012,9 @@ def missing_cone_shift(profile, s0, plateau, total, plus, minus):  # pragma: no 
     The body's weights stop where its contrast falls below ``support_fraction`` (0.2) of the peak
     (segmentation), and the peak through a cone's axis falls linearly to its apex: a faint tip, about
     a fifth of the cone, lies beyond the weights (robot 6: the last ~20 px of a 130 px cone). It is
-    little mass but far out: the centroid came out ~0.2 px towards the tail (0.06 mm in 3D on robot 6
-    rendered without vessel or noise, 0.12-0.2 px on robots 1, 3 and 7). The end's own profile says
+    little mass but far out: the centroid came out ~0.2 px towards the tail on robot 6 (0.07-0.14 px on
+    robots 7, 1 and 3; robot 6 rendered without vessel or noise: 3D centroid RMS 0.062 mm, 0.026 with
+    the tip counted). The end's own profile says
     what is missing: ``sqrt(profile)`` falls linearly to the apex (the tip model of
     :meth:`.Features2D.tip_distance`, levels 0.25 and 0.64 giving the cone's length ``Lc`` and its
     apex), so beyond the weights' end ``e`` lies ``plateau L^3 / (3 Lc^2)`` of weight, ``L`` = apex - ``e``,
