@@ -13,8 +13,11 @@ the noise, so the difference between the two is what the background interpolated
   across the true axis, the category's share of the total squared error, and the centroid RMS of
   the same poses rendered without the vessel;
 * 2D, per view and clutter category of that view: the image centroid's error along and across the
-  true axis against the vessel-free render's (px), and the errors along the axis of the head (the
-  cone's apex) and the tail (the flat end) against their true projections (RMS and median, px);
+  true axis against the vessel-free render's (px), the errors along the axis of the head (the cone's
+  apex) and the tail (the flat end) against their true projections (RMS and median, px), and the
+  blob's weighted centroid along the axis against the vessel-free blob's, as is and with the weights
+  kept on the vessel-free blob's support only (the part left is the background error inside the true
+  support; the rest is the support's extent);
 * the frames with the largest 3D centroid error, with their views' clutter and 2D errors.
 
 Usage: ``python benchmarks/clutter_breakdown.py [--robots 6] [--seeds 1-20] [--poses 30] [--worst 15]``.
@@ -41,7 +44,7 @@ from accuracy import (  # noqa: E402
 )
 
 from appliance.compiled import warm_up_all  # noqa: E402
-from appliance.recognition import PostureTracker, RecognitionSettings, detect, log_background  # noqa: E402
+from appliance.recognition import Blob, PostureTracker, RecognitionSettings, detect, log_background  # noqa: E402
 from appliance.robots import load_robots  # noqa: E402
 from drivers.loopback.scene_builders import S_BEND_CENTRELINE_MM, smooth_centreline  # noqa: E402
 from drivers.loopback.xray_render import (  # noqa: E402
@@ -65,6 +68,12 @@ class ViewError:
     across: float
     head: float  # recognised minus true apex, along the axis (outward positive)
     tail: float  # recognised minus true flat end, along the axis (outward positive)
+    #: The blob's own weighted centroid along the axis against the vessel-free blob's (px), and the same
+    #: with the weights kept only where the vessel-free blob has weights: what is left is the background
+    #: error inside the body's true support; the rest came from the support's extent (an end run on
+    #: into the vessel, or a faint end lost to it).
+    moment_along: float = math.nan
+    on_true_support: float = math.nan
 
 
 @dataclass
@@ -95,14 +104,26 @@ def _category(clutters: list[float], max_clutter: float) -> str:
     return f"clutter <= {CLEAN_CLUTTER:g}" if max(clutters) <= CLEAN_CLUTTER else f"clutter <= {max_clutter:g}"
 
 
-def _clutter_of(image: np.ndarray, centroid_px: np.ndarray, settings: RecognitionSettings) -> float:
-    """The clutter of the candidate the recognised image centroid belongs to (the nearest one)."""
+def _blob_of(image: np.ndarray, centroid_px: np.ndarray, settings: RecognitionSettings) -> Blob | None:
+    """The candidate the recognised image centroid belongs to (the nearest one)."""
     blobs = detect(image, log_background(image, settings.background_scale_px, settings.dark_level), settings)
     if not blobs:
-        return math.nan
-    nearest = min(blobs, key=lambda b: math.hypot(b.centroid_px[0] - centroid_px[0],
-                                                   b.centroid_px[1] - centroid_px[1]))
-    return float(nearest.clutter)
+        return None
+    return min(blobs, key=lambda b: math.hypot(b.centroid_px[0] - centroid_px[0], b.centroid_px[1] - centroid_px[1]))
+
+
+def _weighted_centroid(blob: Blob, keep: Blob | None = None) -> np.ndarray:
+    """The blob's weighted centroid (image px); with ``keep``, of its weights where ``keep`` has weights."""
+    ys, xs = np.nonzero(blob.weights)
+    values = blob.weights[ys, xs].astype(np.float64)
+    gx, gy = xs + blob.window.x0, ys + blob.window.y0
+    if keep is not None:
+        kx, ky = gx - keep.window.x0, gy - keep.window.y0
+        h, w = keep.weights.shape
+        inside = (kx >= 0) & (kx < w) & (ky >= 0) & (ky < h)
+        inside[inside] = keep.weights[ky[inside], kx[inside]] != 0
+        gx, gy, values = gx[inside], gy[inside], values[inside]
+    return np.array([gx @ values, gy @ values]) / values.sum()
 
 
 def _ends(tips_px: np.ndarray, head_px: np.ndarray, tail_px: np.ndarray, axis: np.ndarray
@@ -149,7 +170,8 @@ def run_robot(robot_id: int, seed: int, poses: int, settings: RecognitionSetting
             truth = pair.truth[name]
             axis = (truth.head_px - truth.tail_px) / np.linalg.norm(truth.head_px - truth.tail_px)
             seen = posture.views[name]
-            clutter = _clutter_of(pair.images[name], seen.centroid_px, settings)
+            blob = _blob_of(pair.images[name], seen.centroid_px, settings)
+            clutter = float(blob.clutter) if blob is not None else math.nan
             if clean.ok:
                 shift = seen.centroid_px - clean.views[name].centroid_px
                 d_along, d_across = float(shift @ axis), float(shift @ np.array([-axis[1], axis[0]]))
@@ -157,6 +179,11 @@ def run_robot(robot_id: int, seed: int, poses: int, settings: RecognitionSetting
                 d_along = d_across = math.nan
             head, tail = _ends(seen.tips_px, truth.head_px, truth.tail_px, axis)
             frame_views[name] = ViewError(clutter, d_along, d_across, head, tail)
+            free_blob = _blob_of(reference.images[name], clean.views[name].centroid_px, settings) if clean.ok else None
+            if blob is not None and free_blob is not None:
+                free_centroid = _weighted_centroid(free_blob)
+                frame_views[name].moment_along = float((_weighted_centroid(blob) - free_centroid) @ axis)
+                frame_views[name].on_true_support = float((_weighted_centroid(blob, free_blob) - free_centroid) @ axis)
         across = float(np.linalg.norm(error - along * pose.direction))
         out.append(FrameError(seed, i, s["centroid_mm"], along, across, s_free["centroid_mm"], frame_views,
                               settings.max_clutter))
@@ -190,7 +217,7 @@ def print_tables(frames: list[FrameError], worst: int, max_clutter: float) -> No
     views = [v for f in frames for v in f.views.values()]
     print("\n2D errors by view clutter (px): image centroid against the vessel-free render's, ends against the truth")
     print(f"{'view clutter':>22} | {'views':>5} {'along':>6} {'across':>6} | {'head RMS':>8} {'median':>6} | "
-          f"{'tail RMS':>8} {'median':>6}")
+          f"{'tail RMS':>8} {'median':>6} | {'moment':>6} {'on true support':>15}")
     for label, low, high in ((f"<= {CLEAN_CLUTTER:g}", -math.inf, CLEAN_CLUTTER),
                              (f"{CLEAN_CLUTTER:g} - {max_clutter:g}", CLEAN_CLUTTER, max_clutter),
                              (f"> {max_clutter:g}", max_clutter, math.inf)):
@@ -199,7 +226,8 @@ def print_tables(frames: list[FrameError], worst: int, max_clutter: float) -> No
             continue
         print(f"{label:>22} | {len(sel):5d} {_rms([v.along for v in sel]):6.2f} {_rms([v.across for v in sel]):6.2f} | "
               f"{_rms([v.head for v in sel]):8.2f} {_median_abs([v.head for v in sel]):6.2f} | "
-              f"{_rms([v.tail for v in sel]):8.2f} {_median_abs([v.tail for v in sel]):6.2f}")
+              f"{_rms([v.tail for v in sel]):8.2f} {_median_abs([v.tail for v in sel]):6.2f} | "
+              f"{_rms([v.moment_along for v in sel]):6.2f} {_rms([v.on_true_support for v in sel]):15.2f}")
     print(f"\nworst {worst} frames (3D centroid error, mm; per view: clutter, centroid along/across, head, tail px)")
     for f in sorted(frames, key=lambda f: -f.centroid_mm)[:worst]:
         per_view = "  ".join(f"{n}: {v.clutter:.2f} {v.along:+6.2f}/{v.across:+5.2f} {v.head:+6.1f} {v.tail:+5.1f}"
