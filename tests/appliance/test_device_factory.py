@@ -106,11 +106,18 @@ def test_loopback_devices_sit_on_real_transports_and_share_one_world() -> None:
         np.testing.assert_allclose(sim.world.last_field_t, 0.0)
         with sim.real_time():
             devices.amplifier.enable()
+        period = 1.0 / 30.0
         for _ in range(8):
             # A command every 33 ms of simulated time, as the loop does: the host's heartbeat runs in real
-            # time and cannot feed the 200 ms watchdog across a jump of simulated time.
-            devices.amplifier.set_currents([2.0] + [0.0] * 7)
-            sim.step(1.0 / 30.0)
+            # time and cannot feed the 200 ms watchdog across a jump of simulated time. The driver's slew
+            # limit runs on the host's (real) clock too, so the commands are 33 ms apart in real time as
+            # well: back to back (a world step takes 1-7 ms of wall time) the host ramps 2 A at 120 A/s of
+            # WALL time and sends ~1.8 A by the eighth command on a quiet machine.
+            sent = time.monotonic()
+            result = devices.amplifier.set_currents([2.0] + [0.0] * 7)
+            sim.step(period)
+            time.sleep(max(0.0, sent + period - time.monotonic()))
+        assert result.commanded_a[0] == 2.0 and result.slew_scale == 1.0   # the host's ramp is done
         np.testing.assert_allclose(sim.measured_currents_a()[0], 2.0, atol=0.02)
         expected = sim.world.field_at(sim.world.pose.centroid_mm, sim.measured_currents_a())
         np.testing.assert_allclose(sim.world.last_field_t, expected, rtol=0.02)
