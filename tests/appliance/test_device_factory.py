@@ -17,7 +17,8 @@ from appliance.device_factory import amplifier_limits, open_devices, perturbed_c
 from appliance.errors import DeviceNotFoundError
 from appliance.robots import load_robots
 from appliance.session_config import AmplifierDevice, session_from_mapping
-from appliance.sim_bench import PoseHistory, SimClock
+from appliance.sim_bench import SimClock
+from drivers.loopback.lab import PoseHistory
 from drivers.amplifier import Amplifier
 from drivers.loopback.xray_render import biplane_views
 from drivers.usb_grabber import UsbGrabber
