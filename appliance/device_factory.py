@@ -6,10 +6,9 @@ X-ray grabbers). ``kind: loopback`` builds the fakes over REAL transports - the 
 NDI tracker fake each on a pseudo-terminal (or a loopback TCP port), both X-ray planes rendered from
 the simulated world and streamed through the fake pyusb backend into the real USB grabber driver (or
 the in-process loopback grabber) - and the :class:`~appliance.sim_bench.SimBench` that ties them to one
-simulated world on one simulated clock. With ``separate_lab`` (what the simulation harness asks for) the
-world, the amplifier and tracker fakes and the renderer run in one child process, as a bench's devices
-are other machines; otherwise in this process, the renderer alone in a child unless ``separate_renderer``
-is False. The appliance side (drivers, orchestrator) is the same in every case.
+simulated world on one simulated clock. By default (``separate_lab``) the world, the amplifier and
+tracker fakes and the renderer run in one child process, as a bench's devices are other machines;
+otherwise in this process, the renderer alone in a child unless ``separate_renderer`` is False. The appliance side (drivers, orchestrator) is the same in every case.
 
 Clocks in simulation: the world, the fakes and the frame loop run on :class:`~appliance.sim_bench.SimClock`, which only the
 simulation harness advances. The host drivers keep the real monotonic clock for their link timeouts
@@ -173,7 +172,7 @@ def _connect_ots(url: str, device: OtsDevice, rom: bytes | str, rom_name: str) -
 
 
 # -- the whole session --------------------------------------------------------------------------------
-def open_devices(session: Session, robot: RobotSpec, coils: Any, *, separate_lab: bool = False,
+def open_devices(session: Session, robot: RobotSpec, coils: Any, *, separate_lab: bool = True,
                  separate_renderer: bool = True) -> Devices:
     """Open (or, in simulation, build and open) every device of ``session``; the frame stream is started.
 
@@ -181,9 +180,9 @@ def open_devices(session: Session, robot: RobotSpec, coils: Any, *, separate_lab
     X-ray renderer - in one child process (:mod:`drivers.loopback.lab_process`), as a bench's devices are
     other machines; this process keeps what a bench's host has: the amplifier's and the tracker's ptys
     and the grabbers' USB backend (the frames rendered in the child, through shared memory). The factory
-    starts the child and the devices' close ends it. False keeps the lab in this process (the validation's
-    simulated hands act on it directly), and then ``separate_renderer`` runs the X-ray renderer in a child
-    process (:mod:`drivers.loopback.render_process`; same images), False in this one."""
+    starts the child and the devices' close ends it. False keeps the lab in this process (for tests and
+    comparisons), and then ``separate_renderer`` runs the X-ray renderer in a child process
+    (:mod:`drivers.loopback.render_process`; same images), False in this one."""
     config = session.config
     stack = contextlib.ExitStack()
     try:
@@ -280,39 +279,30 @@ def _open_simulation(session: Session, robot: RobotSpec, coils: Any, stack: cont
                          ots={"link": ots_device.link, "seed": sim.seed} if ots_device.kind == "loopback" else None)
         stack.callback(lab.close)
         amp_url, ots_url = lab.amplifier_url, lab.ots_url
-        # The scene hands the exposure's time to the lab, which renders the robot as it was then.
-        scene_renderer: Any = lab.exposures
-        scene_provider: Any = float
     else:
         from drivers.loopback.amplifier_fake import FakeAmplifier
         from drivers.loopback.lab import LoopbackLab
 
-        fake = FakeAmplifier(amp_config)
-        server = _served(fake, amp_device.link, clock)
-        stack.callback(server.close)
-        ots_fake = ots_server = None
-        if ots_device.kind == "loopback":
-            from drivers.loopback.ots_fake import NdiTrackerFake, NoiseModel
-
-            def tool_pose(now: float) -> dict[int, Any]:
-                pose = world.tool_pose()
-                return {0: (pose.rotation, pose.position_mm)}
-
-            ots_fake = NdiTrackerFake(tool_pose, noise=NoiseModel(seed=sim.seed))
-            ots_server = _served(ots_fake, ots_device.link, clock)
-            stack.callback(ots_server.close)
-        # The servers are closed by the stack (each once: a pty's descriptors must not be closed twice).
-        lab = LoopbackLab(clock, world, fake, server, sim.substep_ms / 1000.0, ots_fake=ots_fake,
-                          ots_server=ots_server)
-        amp_url = _server_url(server, amp_device.link)
-        ots_url = _server_url(ots_server, ots_device.link) if ots_server is not None else None
         if separate_renderer:
             from drivers.loopback.render_process import RenderProcess
 
             # The fluoroscope is another device on a bench: its rendering must not take the loop's GIL.
             renderer = RenderProcess(renderer)
             stack.callback(renderer.close)
-        scene_renderer, scene_provider = renderer, lab.exposure_pose
+        fake = FakeAmplifier(amp_config)
+        server = _served(fake, amp_device.link, clock)
+        stack.callback(server.close)
+        # The servers are closed by the stack (each once: a pty's descriptors must not be closed twice).
+        lab = LoopbackLab(clock, world, fake, server, sim.substep_ms / 1000.0, renderer=renderer)
+        amp_url, ots_url = _server_url(server, amp_device.link), None
+        if ots_device.kind == "loopback":
+            from drivers.loopback.ots_fake import NdiTrackerFake, NoiseModel
+
+            ots_fake = NdiTrackerFake(lab.tool_poses, noise=NoiseModel(seed=sim.seed))
+            ots_server = _served(ots_fake, ots_device.link, clock)
+            stack.callback(ots_server.close)
+            lab.attach_tracker(ots_fake, ots_server)
+            ots_url = _server_url(ots_server, ots_device.link)
     bench_sim = SimBench(clock, lab, true_views)
     if config.calibration.source == "nominal":
         p = config.calibration.perturbation
@@ -322,8 +312,8 @@ def _open_simulation(session: Session, robot: RobotSpec, coils: Any, stack: cont
         assert config.calibration.file is not None
         calibration = Calibration.load(session.resolve(config.calibration.file))
 
-    scene = LoopbackScene(scene_renderer, scene_provider, rate_hz=imaging.fps,
-                          exposure_s=imaging.exposure_ms / 1000.0)
+    # The scene hands the exposure's time to the lab, which renders the robot as it was then.
+    scene = LoopbackScene(lab.exposures, float, rate_hz=imaging.fps, exposure_s=imaging.exposure_ms / 1000.0)
     bench_sim.scene = scene
     xray = config.devices.xray
     if xray.link == "usb":

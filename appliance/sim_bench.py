@@ -118,9 +118,9 @@ class _ReleasedClock:
 class SimBench:
     """The simulated side of a session: the lab (world and fakes), the clock, the X-ray scene, fault injection.
 
-    ``lab`` is what the factory built: a ``LoopbackLab`` in this process, or a ``LabProcess`` proxy to one in
-    a child process (the default of the simulation harness); both have ``step``, ``pose``,
-    ``measured_currents_a``, ``current_trace`` and the fault injections. ``world`` and ``amplifier_fake``
+    ``lab`` is what the factory built: a ``LabProcess`` proxy to a ``LoopbackLab`` in a child process (the
+    default), or a ``LoopbackLab`` in this process; both have ``step``, ``pose``, ``measured_currents_a``,
+    ``current_trace``, the fault injections and the validation's hands. ``world`` and ``amplifier_fake``
     are the lab's (proxies when it is in a child); ``history``, ``amplifier_server``, ``ots_fake`` and
     ``ots_server`` exist only for a lab in this process (None otherwise)."""
 
@@ -221,6 +221,35 @@ class SimBench:
         finally:
             stop.set()
             thread.join(timeout=2.0)
+
+    # -- the validation's hands (appliance validate in simulation) -------------------------------------------
+    def pass_time(self, seconds: float) -> None:
+        """Let time pass without the world's dynamics (the robot clamped in its holder)."""
+        self.lab.pass_time(seconds)
+
+    def use_pointer(self) -> None:
+        """The tracker sees tool 1, the validation's pointer, from now on."""
+        self.lab.use_pointer()
+
+    def set_pointer(self, pose: Any) -> None:
+        """The pointer's pose provider (``pose(now) -> (R, t_mm)``, picklable), or None (put away)."""
+        self.lab.set_pointer(pose)
+
+    def place_robot(self, centroid_mm: Any, direction: Any) -> None:
+        """Clamp the robot at a new pose now (exposures from now on show it there)."""
+        self.lab.place_robot(centroid_mm, direction)
+
+    def replace_renderer(self, renderer: Any) -> None:
+        """X-ray exposures rendered by ``renderer`` (another phantom) until :meth:`restore_renderer`."""
+        self.lab.replace_renderer(renderer)
+
+    def restore_renderer(self) -> None:
+        self.lab.restore_renderer()
+
+    @property
+    def renderer_settings(self) -> Any:
+        """The simulated detector's settings (photons per pixel, dark level)."""
+        return self.lab.renderer_settings
 
     # -- fault injection -------------------------------------------------------------------------
     def cut_amplifier_link(self) -> None:

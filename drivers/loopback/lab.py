@@ -7,11 +7,13 @@ the currents the coils really carried. :meth:`LoopbackLab.step` advances world a
 each holding the amplifier fake's MEASURED coil currents, so the coils' L/R lag, slew limits and faults
 act on the robot.
 
-It runs either in the appliance's process (the device factory's in-process lab, which the validation's
-simulated hands need: they swap the tracker's pose provider and the renderer) or in a child process
-(:mod:`drivers.loopback.lab_process`, the default of the simulation harness, as the devices of a bench
-are other machines). The clock is the caller's: the harness's simulated clock in-process, a
-:class:`LabClock` in the child.
+It also renders the X-ray exposures (:meth:`LoopbackLab.render_at`: the robot as it was at the exposure's
+time) and holds what the validation's simulated hands change: the phantom on the table (another
+renderer), the robot clamped at a pose, the tracked pointer's motion (:meth:`LoopbackLab.set_pointer`).
+
+It runs in a child process by default (:mod:`drivers.loopback.lab_process`, as the devices of a bench are
+other machines) or in the appliance's process (``open_devices(separate_lab=False)``: tests, comparisons).
+The clock is the caller's: the harness's simulated clock in-process, a :class:`LabClock` in the child.
 """
 from __future__ import annotations
 
@@ -91,24 +93,100 @@ class PoseHistory:
         return samples[-1].centroid_mm, samples[-1].direction
 
 
+class Exposures:
+    """The renderer as an X-ray scene (``LoopbackScene``) calls it: ``render(t)`` is the exposure at simulated
+    ``t`` (the scene's provider hands the time on), the robot drawn as it was then."""
+
+    def __init__(self, render_at: Any, views: Any, process: Any = None) -> None:
+        self.render = render_at
+        self.views = views
+        self.process = process            # the process that renders, when it is another one
+
+
 class LoopbackLab:
-    """World, amplifier fake and tracker fake (with their servers) on one clock; see the module docstring."""
+    """World, amplifier fake, tracker fake (with their servers) and the X-ray renderer on one clock; see the
+    module docstring. The tracker fake is attached with :meth:`attach_tracker` (its poses come from
+    :meth:`tool_poses`)."""
 
     def __init__(self, clock: Any, world: SimWorld, amplifier_fake: Any, amplifier_server: Any, substep_s: float,
-                 *, ots_fake: Any = None, ots_server: Any = None) -> None:
+                 *, renderer: Any = None) -> None:
         self.clock = clock
         self.world = world
         self.amplifier_fake = amplifier_fake
         self.amplifier_server = amplifier_server
-        self.ots_fake = ots_fake
-        self.ots_server = ots_server
+        self.ots_fake: Any = None
+        self.ots_server: Any = None
         self.substep_s = substep_s
+        self.renderer = renderer
+        self._renderers: list[Any] = []     # the ones replace_renderer put aside
+        self.exposures = Exposures(self.render_at, getattr(renderer, "views", None),
+                                   getattr(renderer, "process", None))
         self.history = PoseHistory()
         #: (t, max |measured current|) after every world step: what the coils really carried.
         self.current_trace: list[tuple[float, float]] = []
         self._step_lock = threading.RLock()
+        self._pointer: Any = None
+        self._pointer_in_use = False
         pose = world.pose
         self.history.append(clock.now(), pose.centroid_mm, pose.direction)
+
+    def attach_tracker(self, ots_fake: Any, ots_server: Any) -> None:
+        """The tracker fake (built with :meth:`tool_poses` as its provider) and its server."""
+        self.ots_fake, self.ots_server = ots_fake, ots_server
+
+    def tool_poses(self, now: float) -> dict[int, Any]:
+        """What the tracker sees: tool 0 the holder rigidly on the robot; tool 1, once :meth:`use_pointer` was
+        called, the validation's pointer (None while it is put away)."""
+        holder = self.world.tool_pose()
+        poses: dict[int, Any] = {0: (holder.rotation, holder.position_mm)}
+        if self._pointer_in_use:
+            poses[1] = self._pointer(now) if self._pointer is not None else None
+        return poses
+
+    # -- the validation's hands (appliance validate in simulation) -------------------------------------------
+    def use_pointer(self) -> None:
+        """From now on the tracker also sees tool 1, the pointer (its current frame is measured again)."""
+        self._pointer_in_use = True
+        if self.ots_fake is not None:
+            with self.ots_server.lock:
+                self.ots_fake.provider = self.tool_poses
+
+    def set_pointer(self, pose: Any) -> None:
+        """The pointer's pose from now on: a callable ``pose(now) -> (R, t_mm)`` (picklable when the lab is in
+        another process: ``ots_poses.HeldPose``, ``ots_poses.PivotingPose``), or None (put away)."""
+        self._pointer = pose
+
+    def pass_time(self, seconds: float) -> None:
+        """Let time pass without the world's dynamics (the robot clamped in its holder)."""
+        self.clock.advance(seconds)
+
+    def pass_time_to(self, t_s: float) -> None:
+        self.clock.advance_to(t_s)
+
+    def place_robot(self, centroid_mm: Any, direction: Any) -> None:
+        """Clamp the robot at a new pose now: exposures before now show the old pose, after it the new one."""
+        t = self.clock.now()
+        old = self.world.pose
+        self.history.append(t, old.centroid_mm, old.direction)
+        self.world.set_pose(centroid_mm, direction)
+        new = self.world.pose
+        self.history.append(t + 1e-9, new.centroid_mm, new.direction)
+
+    def replace_renderer(self, renderer: Any) -> None:
+        """Render with ``renderer`` (another phantom on the table) until :meth:`restore_renderer`."""
+        self._renderers.append(self.renderer)
+        self.renderer = renderer
+
+    def restore_renderer(self) -> None:
+        self.renderer = self._renderers.pop()
+
+    @property
+    def renderer_settings(self) -> Any:
+        return self.renderer.settings
+
+    def render_at(self, t_s: float) -> Any:
+        """The exposure at simulated ``t_s`` (``RenderedPair``): the robot as it was then, or none when hidden."""
+        return self.renderer.render(self.exposure_pose(t_s))
 
     def measured_currents_a(self) -> np.ndarray:
         """The amplifier fake's coil currents now (brought up to the clock first)."""

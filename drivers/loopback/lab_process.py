@@ -82,7 +82,12 @@ class LabProcess:
         self.process: subprocess.Popen[bytes] | None = None
         self.world = _Remote(self, "world")
         self.amplifier_fake = _Remote(self, "amplifier_fake")
-        self.exposures = _Exposures(self)
+        self.renderer_settings = renderer.settings
+        #: The amplifier fake's last snapshot, taken as the child is closed (its state when the session ended).
+        self.final_amplifier_state: Any = None
+        from drivers.loopback.lab import Exposures
+
+        self.exposures = Exposures(self.render_at, self.views)
         try:
             handle.truncate(2 * size)
             handle.close()
@@ -91,6 +96,7 @@ class LabProcess:
                 [sys.executable, "-m", "drivers.loopback.lab_process", self.shm_path],
                 stdin=subprocess.PIPE, stdout=subprocess.PIPE)
             assert self.process.stdin is not None and self.process.stdout is not None
+            self.exposures.process = self.process
             self._to_child, self._from_child = self.process.stdin, self.process.stdout
             ready = self._request({
                 "world": world, "amplifier_config": amplifier_config, "amplifier_link": amplifier_link,
@@ -161,6 +167,27 @@ class LabProcess:
     def hide_robot(self, hidden: bool = True) -> None:
         self.call(_OWN, "hide_robot", hidden)
 
+    # -- the validation's hands (see LoopbackLab) ---------------------------------------------------------
+    def use_pointer(self) -> None:
+        self.call(_OWN, "use_pointer")
+
+    def set_pointer(self, pose: Any) -> None:
+        self.call(_OWN, "set_pointer", pose)
+
+    def pass_time(self, seconds: float) -> None:
+        target = self.clock.now() + seconds
+        self.call(_OWN, "pass_time_to", target)
+        self.clock.advance_to(target)
+
+    def place_robot(self, centroid_mm: Any, direction: Any) -> None:
+        self.call(_OWN, "place_robot", centroid_mm, direction)
+
+    def replace_renderer(self, renderer: Any) -> None:
+        self.call(_OWN, "replace_renderer", renderer)
+
+    def restore_renderer(self) -> None:
+        self.call(_OWN, "restore_renderer")
+
     def render_at(self, t_s: float) -> Any:
         """The exposure at simulated ``t_s`` (``RenderedPair``; the images are the caller's own arrays)."""
         from drivers.loopback.xray_render import RenderedPair
@@ -191,6 +218,9 @@ class LabProcess:
     def close(self, timeout_s: float = 5.0) -> None:
         """End the child (end of its input, then terminate/kill if it does not go) and remove the frames file.
         Idempotent."""
+        if self.alive:
+            with contextlib.suppress(LabProcessError):
+                self.final_amplifier_state = self.call("amplifier_fake", "snapshot")
         with self._lock:
             if self._closed:
                 return
@@ -236,22 +266,6 @@ class _Remote:
         return value
 
 
-class _Exposures:
-    """The renderer as the parent's ``LoopbackScene`` calls it: ``render(t)`` for the exposure at ``t`` (its
-    scene provider hands the time on), rendered in the child from the world's pose then."""
-
-    def __init__(self, lab: LabProcess) -> None:
-        self._lab = lab
-        self.views = lab.views
-
-    @property
-    def process(self) -> subprocess.Popen[bytes] | None:
-        return self._lab.process
-
-    def render(self, t_s: float) -> Any:
-        return self._lab.render_at(t_s)
-
-
 # -- the child ---------------------------------------------------------------------------------------
 def _build(setup: dict[str, Any]) -> Any:
     from drivers.loopback.amplifier_fake import FakeAmplifier
@@ -259,21 +273,16 @@ def _build(setup: dict[str, Any]) -> Any:
     from drivers.loopback.serve import PtyServer, TcpServer
 
     clock = LabClock(setup["start_s"])
-    world = setup["world"]
     fake = FakeAmplifier(setup["amplifier_config"])
     server = TcpServer(fake, clock=clock) if setup["amplifier_link"] == "tcp" else PtyServer(fake, clock=clock)
-    ots_fake = ots_server = None
+    lab = LoopbackLab(clock, setup["world"], fake, server, setup["substep_s"], renderer=setup["renderer"])
     if setup["ots"] is not None:
         from drivers.loopback.ots_fake import NdiTrackerFake, NoiseModel
 
-        def tool_pose(now: float) -> dict[int, Any]:
-            pose = world.tool_pose()
-            return {0: (pose.rotation, pose.position_mm)}
-
-        ots_fake = NdiTrackerFake(tool_pose, noise=NoiseModel(seed=setup["ots"]["seed"]))
-        ots_server = (TcpServer(ots_fake, clock=clock) if setup["ots"]["link"] == "tcp"
-                      else PtyServer(ots_fake, clock=clock))
-    return LoopbackLab(clock, world, fake, server, setup["substep_s"], ots_fake=ots_fake, ots_server=ots_server)
+        ots_fake = NdiTrackerFake(lab.tool_poses, noise=NoiseModel(seed=setup["ots"]["seed"]))
+        lab.attach_tracker(ots_fake, TcpServer(ots_fake, clock=clock) if setup["ots"]["link"] == "tcp"
+                           else PtyServer(ots_fake, clock=clock))
+    return lab
 
 
 def _url(server: Any) -> str | None:
@@ -282,7 +291,7 @@ def _url(server: Any) -> str | None:
     return server.path if hasattr(server, "path") else server.address
 
 
-def _answer(lab: Any, renderer: Any, frames: np.memmap, offsets: dict[str, int], request: Any) -> Any:
+def _answer(lab: Any, frames: np.memmap, offsets: dict[str, int], request: Any) -> Any:
     kind = request[0]
     if kind == "step_to":
         before = len(lab.current_trace)
@@ -291,11 +300,11 @@ def _answer(lab: Any, renderer: Any, frames: np.memmap, offsets: dict[str, int],
         del lab.current_trace[:]       # the parent keeps the trace
         return pose, trace
     if kind == "render":
-        pose = lab.exposure_pose(request[1])
-        rendered = renderer.render(pose)
+        rendered = lab.render_at(request[1])
         for name, image in rendered.images.items():
             frames[offsets[name]:offsets[name] + image.size] = image.reshape(-1)
-        return {"truth": rendered.truth, "head_mm": rendered.head_mm, "tail_mm": rendered.tail_mm, "pose": pose}
+        return {"truth": rendered.truth, "head_mm": rendered.head_mm, "tail_mm": rendered.tail_mm,
+                "pose": rendered.pose}
     target = lab if request[1] == _OWN else getattr(lab, request[1])
     if kind == "get":
         value = getattr(target, request[2])
@@ -315,7 +324,7 @@ def _serve(shm_path: str, requests: BinaryIO, replies: BinaryIO) -> int:
         _send(replies, {"error": f"{type(err).__name__}: {err}"})
         return 1
     try:
-        renderer, offsets, shapes = setup["renderer"], setup["offsets"], setup["shapes"]
+        offsets, shapes = setup["offsets"], setup["shapes"]
         size = sum(int(np.prod(shape)) for shape in shapes.values())
         frames = np.memmap(shm_path, dtype="<u2", mode="r+", shape=(size,))
         _send(replies, {"value": {"amplifier": _url(lab.amplifier_server), "ots": _url(lab.ots_server)}})
@@ -325,7 +334,7 @@ def _serve(shm_path: str, requests: BinaryIO, replies: BinaryIO) -> int:
             except EOFError:
                 return 0       # the parent closed the pipe or died
             try:
-                reply = {"value": _answer(lab, renderer, frames, offsets, request)}
+                reply = {"value": _answer(lab, frames, offsets, request)}
             except Exception as err:  # noqa: BLE001 - reported to the parent, which raises it there
                 reply = {"error": f"{type(err).__name__}: {err}"}
             _send(replies, reply)

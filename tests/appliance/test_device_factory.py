@@ -88,10 +88,11 @@ def test_amplifier_limits_come_from_the_coils_lowered_by_the_device_section() ->
     assert lowered.watchdog_ms == 100
 
 
-def test_loopback_devices_sit_on_real_transports_and_share_one_world() -> None:
+@pytest.mark.parametrize("separate_lab", [True, False], ids=["lab in a child process", "lab in process"])
+def test_loopback_devices_sit_on_real_transports_and_share_one_world(separate_lab: bool) -> None:
     session = session_from_mapping(sim_mapping(), config_path("sim.yaml"))
     coils = load_coils()
-    with open_devices(session, load_robots()[1], coils) as devices:
+    with open_devices(session, load_robots()[1], coils, separate_lab=separate_lab) as devices:
         sim = devices.sim
         assert sim is not None
         assert isinstance(devices.amplifier, Amplifier)
@@ -125,7 +126,11 @@ def test_loopback_devices_sit_on_real_transports_and_share_one_world() -> None:
         assert np.linalg.norm(expected) > 1e-4
         samples = devices.ots.wait_for_frame(timeout_s=2.0) if devices.ots else []
         assert samples and not samples[0].missing
-    assert not sim.amplifier_fake.snapshot().output_on       # closing shut the amplifier down
+    # Closing shut the amplifier down (a lab in a child process keeps the fake's last state as it ends).
+    final = sim.lab.final_amplifier_state if separate_lab else sim.amplifier_fake.snapshot()
+    assert final is not None and not final.output_on
+    if separate_lab:
+        assert sim.lab.process.poll() is not None              # and ended the lab's process
 
 
 def test_real_kinds_name_the_port_that_is_missing(tmp_path: Path) -> None:
