@@ -176,7 +176,8 @@ def main() -> int:
             later = max(pair.frames.values(), key=lambda f: f.host_time_s)
             host = host_snaps.get((later.plane, later.number))
             steps.append({"latency": report.latency_write_s * 1e3, "host": host, "got": current["got"],
-                          "written": current["written"]})
+                          "written": current["written"], "index": report.index,
+                          "recognition_ms": report.stages_us.get("recognition", 0.0) / 1e3})
 
         cpu_start = _snapshot()
         children_start = _children_cpu_s()
@@ -208,6 +209,8 @@ def main() -> int:
                           ("  loop on a run queue, host -> written", ab_queue)):
         print(f"  {label:<34} {_pct(values, 50):7.2f} {_pct(values, 99):7.2f} {max(values, default=float('nan')):7.2f}")
     worst = sorted(range(len(steps)), key=lambda i: lat[i])[-max(1, len(steps) // 100):]
+    print("  worst steps (index: latency, recognition ms): " + ", ".join(
+        f"{steps[i]['index']}: {lat[i]:.1f}, {steps[i]['recognition_ms']:.1f}" for i in reversed(worst)))
     others: dict[str, list[float]] = defaultdict(list)
     others_worst: dict[str, float] = defaultdict(float)
     for i, s in enumerate(steps):
