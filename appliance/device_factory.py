@@ -8,7 +8,8 @@ the simulated world and streamed through the fake pyusb backend into the real US
 the in-process loopback grabber) - and the :class:`~appliance.sim_bench.SimBench` that ties them to one
 simulated world on one simulated clock. By default (``separate_lab``) the world, the amplifier and
 tracker fakes and the renderer run in one child process, as a bench's devices are other machines;
-otherwise in this process, the renderer alone in a child unless ``separate_renderer`` is False. The appliance side (drivers, orchestrator) is the same in every case.
+otherwise in this process, the renderer alone in a child unless ``separate_renderer`` is False. The
+appliance side (drivers, orchestrator) is the same in every case.
 
 Clocks in simulation: the world, the fakes and the frame loop run on :class:`~appliance.sim_bench.SimClock`, which only the
 simulation harness advances. The host drivers keep the real monotonic clock for their link timeouts

@@ -60,7 +60,7 @@ class LabProcess:
     "seed": int}``."""
 
     def __init__(self, *, clock: Any, world: Any, amplifier_config: Any, amplifier_link: str, renderer: Any,
-                 substep_s: float, ots: dict[str, Any] | None = None, start_timeout_s: float = 30.0) -> None:
+                 substep_s: float, ots: dict[str, Any] | None = None) -> None:
         self.clock = clock
         self.views = renderer.views
         self._planes = sorted(renderer.views)
