@@ -33,7 +33,6 @@ import numpy as np
 
 from appliance.compiled import kernel, register_warm_up
 from appliance.recognition.run_sets import number_sets, union
-from appliance.recognition.view_kernels import attenuation_from_coarse
 
 #: Columns of :func:`coarse_components`' statistics rows.
 STAT_AREA, STAT_X0, STAT_Y0, STAT_X1, STAT_Y1, STAT_CORE_X0, STAT_CORE_Y0, STAT_CORE_X1, STAT_CORE_Y1 = range(9)
@@ -202,14 +201,14 @@ def _kth_smallest(bits: np.ndarray, k: int) -> np.uint32:  # pragma: no cover
 @kernel
 def _next_order_statistic(bits: np.ndarray, n: int, value: np.uint32, rank: int) -> np.uint32:  # pragma: no cover
     """The ``rank + 1``-th smallest of ``bits[:n]`` given ``value``, its ``rank``-th: ``value`` again if it is
-    repeated that far, else the smallest pattern above it."""
+    repeated that far, else the smallest pattern above it (branch-free, so that it vectorises)."""
     at_most = 0
     above = np.uint32(0xFFFFFFFF)
+    none = np.uint32(0xFFFFFFFF)
     for i in range(n):
         b = bits[i]
         at_most += b <= value
-        if b > value:
-            above = min(above, b)
+        above = min(above, b if b > value else none)
     return value if at_most > rank + 1 else above
 
 
@@ -225,8 +224,8 @@ def _median_pair(bits: np.ndarray, n: int, k: int) -> tuple[np.uint32, np.uint32
     float32 values, ordered like them), ``k + 1 < n``.
 
     A sorted sample of every ``n / 256``-th value gives a bracket that holds both ranks with near
-    certainty (checked by counting, else the whole array is taken): one vectorised count over the
-    values, then only the ~20 % inside the bracket are gathered and selected (radix,
+    certainty (checked by counting, else the whole array is taken): one branch-free pass gathers the
+    ~20 % inside the bracket and counts those below it, and only those are selected (radix,
     :func:`_kth_smallest`), instead of histogramming or partitioning them all."""
     if n >= 4 * _SAMPLE:
         stride = n // _SAMPLE
@@ -238,19 +237,16 @@ def _median_pair(bits: np.ndarray, n: int, k: int) -> tuple[np.uint32, np.uint32
         j_hi = ((k + 1) * _SAMPLE) // n + _BRACKET
         lo = sample[j_lo] if j_lo >= 0 else np.uint32(0)
         hi = sample[j_hi] if j_hi < _SAMPLE else np.uint32(0xFFFFFFFF)
+        # The values inside the bracket gathered (branch-free) while those below it are counted.
+        inside = np.empty(n + 1, dtype=np.uint32)
         below = 0
-        up_to = 0
+        m = 0
         for i in range(n):
             b = bits[i]
+            inside[m] = b
             below += b < lo
-            up_to += b <= hi
-        if below <= k and k + 1 < up_to:
-            inside = np.empty(up_to - below + 1, dtype=np.uint32)
-            m = 0
-            for i in range(n):
-                b = bits[i]
-                inside[m] = b
-                m += (b >= lo) & (b <= hi)
+            m += (b >= lo) & (b <= hi)
+        if below <= k and k + 1 < below + m:
             lower = _kth_smallest(inside[:m], k - below)
             return lower, _next_order_statistic(inside, m, lower, k - below)
     lower = _kth_smallest(bits[:n], k)
@@ -258,15 +254,56 @@ def _median_pair(bits: np.ndarray, n: int, k: int) -> tuple[np.uint32, np.uint32
 
 
 @kernel
+def _attenuation(image: np.ndarray, y0: int, y1: int, x0: int, x1: int, coarse: np.ndarray, fy: float, fx: float,
+                 log_table: np.ndarray) -> np.ndarray:  # pragma: no cover
+    """:func:`.view_kernels.attenuation_from_coarse`'s values (the same float32 operations on each pixel),
+    in two vectorisable passes a row: ``log B`` of the row from its coarse neighbours, then the
+    gray levels' logs subtracted, instead of both inside one loop that the compiler leaves scalar."""
+    hs, ws = coarse.shape
+    h, w = y1 - y0, x1 - x0
+    ix0 = np.empty(w, dtype=np.int64)
+    ix1 = np.empty(w, dtype=np.int64)
+    wx = np.empty(w, dtype=np.float32)
+    wx0 = np.empty(w, dtype=np.float32)
+    one = np.float32(1.0)
+    for x in range(w):
+        s = min(max((x + x0 + 0.5) / fx - 0.5, 0.0), ws - 1.0)
+        i = min(int(s), max(ws - 2, 0))
+        ix0[x] = i
+        ix1[x] = min(i + 1, ws - 1)
+        wx[x] = np.float32(s - i)
+        wx0[x] = one - wx[x]
+    out = np.empty((h, w), dtype=np.float32)
+    row = np.empty(ws, dtype=np.float32)
+    background = np.empty(w, dtype=np.float32)
+    lo, hi = ix0[0], ix1[w - 1] + 1 if w > 0 else 0
+    for y in range(h):
+        s = min(max((y + y0 + 0.5) / fy - 0.5, 0.0), hs - 1.0)
+        i = min(int(s), max(hs - 2, 0))
+        j = min(i + 1, hs - 1)
+        wy = np.float32(s - i)
+        wy0 = one - wy
+        for c in range(lo, hi):
+            row[c] = coarse[i, c] * wy0 + coarse[j, c] * wy
+        for x in range(w):
+            background[x] = row[ix0[x]] * wx0[x] + row[ix1[x]] * wx[x]
+        levels = image[y + y0, x0:x1]
+        o = out[y]
+        for x in range(w):
+            o[x] = background[x] - log_table[levels[x]]
+    return out
+
+
+@kernel
 def window_attenuation(image: np.ndarray, y0: int, y1: int, x0: int, x1: int, coarse: np.ndarray, fy: float,
                        fx: float, log_table: np.ndarray) -> tuple[np.ndarray, float]:  # pragma: no cover
-    """A detection window's attenuation (:func:`.view_kernels.attenuation_from_coarse`, the values
-    :func:`~.segmentation.segment` would compute) and its robust noise sigma, ``1.4826 m / sqrt(2)`` with
+    """A detection window's attenuation (:func:`_attenuation`, the values :func:`~.segmentation.segment`
+    would compute) and its robust noise sigma, ``1.4826 m / sqrt(2)`` with
     ``m`` the median of the horizontal neighbours' absolute differences: the value segment's own
     measurement gives (the same order statistics, :func:`_median_pair`), at a fraction of its cost.
     The sigma is -1 where that measurement is not a plain median (a window narrower than 2 px,
     or a non-finite attenuation): the caller then lets segment measure it."""
-    a = attenuation_from_coarse(image, y0, y1, x0, x1, coarse, fy, fx, log_table)
+    a = _attenuation(image, y0, y1, x0, x1, coarse, fy, fx, log_table)
     h, w = a.shape
     if w < 2 or h == 0:
         return a, -1.0
