@@ -23,9 +23,6 @@ from appliance.recognition.segmentation import (
 )
 from appliance.recognition.settings import RecognitionSettings
 
-#: Passed to :func:`~.background_kernels.coarse_components` when the label image is not wanted.
-_NO_LABELS = np.zeros((0, 0), dtype=np.int32)
-
 
 def detect(image: np.ndarray, background: LogBackground, settings: RecognitionSettings | None = None) -> list[Blob]:
     """Robot candidates anywhere in the image, strongest first, without a full-resolution pass.
