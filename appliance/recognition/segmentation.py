@@ -243,7 +243,8 @@ def _blob_from_component(a: np.ndarray, smooth: np.ndarray, labels: np.ndarray, 
 
 
 def segment(image: np.ndarray, log_bg: np.ndarray | LogBackground, roi: Roi | None = None,
-            settings: RecognitionSettings | None = None, *, sigma: float | None = None) -> list[Blob]:
+            settings: RecognitionSettings | None = None, *, sigma: float | None = None,
+            region_attenuation: np.ndarray | None = None) -> list[Blob]:
     """Robot candidates in ``roi`` (whole image if None), strongest first; empty if none is plausible.
 
     ``log_bg`` is :func:`log_background` of a recent frame of the same view (or a full-frame float32
@@ -253,10 +254,13 @@ def segment(image: np.ndarray, log_bg: np.ndarray | LogBackground, roi: Roi | No
     ``sigma`` is the attenuation image's noise standard deviation if already known (None: measured
     on the region, :func:`noise_sigma`, ~15 us). The tracker passes the one a recent frame of the same
     view measured: the detector and the dose, hence the noise, do not change from frame to frame.
+    ``region_attenuation`` is :func:`attenuation` of the region if the caller has it already (a
+    full-frame detection takes it with the window's noise in one compiled call).
     """
     settings = settings or RecognitionSettings()
     region = roi or Roi.full(image.shape)
-    a = attenuation(image, log_bg, region, settings.dark_level)
+    a = (attenuation(image, log_bg, region, settings.dark_level) if region_attenuation is None
+         else region_attenuation)
     # Noise sigma, the 5x5 sigma=1 Gaussian, components above the threshold, largest first.
     known = float(sigma) if sigma is not None and math.isfinite(sigma) and sigma > 0 else 0.0
     sigma, smooth, labels, stats, order = view_kernels.candidates(
