@@ -7,7 +7,8 @@ appliance's process they take its GIL from the frame loop. Here they run in thei
 ``python -m drivers.loopback.lab_process SHM_FILE`` builds a :class:`~drivers.loopback.lab.LoopbackLab`
 from the pickled world and fake configurations it reads from its stdin, serves the amplifier fake and the
 tracker fake on their own pseudo-terminals (or loopback TCP ports) and answers length-prefixed pickled
-requests on its stdout: step the world to a simulated time, render the exposure at a time into the
+requests on its stdout (the link and the frames file are :mod:`drivers.loopback.child_process`'s, shared
+with the renderer's process): step the world to a simulated time, render the exposure at a time into the
 frames file in shared memory (``/dev/shm`` when there is one), and small calls on the world and the
 fakes (truth, measured currents, snapshots, fault injection) for the harness and the tests.
 
@@ -29,18 +30,22 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import os
-import signal
 import subprocess
 import sys
-import tempfile
-import threading
 from typing import Any, BinaryIO
 
 import numpy as np
 
 from drivers.errors import LinkLostError
-from drivers.loopback.render_process import _receive, _send
+from drivers.loopback.child_process import (
+    ChildLink,
+    FramesFile,
+    answer_requests,
+    child_main,
+    error_reply,
+    receive,
+    send,
+)
 
 log = logging.getLogger(__name__)
 
@@ -63,23 +68,9 @@ class LabProcess:
                  substep_s: float, ots: dict[str, Any] | None = None) -> None:
         self.clock = clock
         self.views = renderer.views
-        self._planes = sorted(renderer.views)
-        self._shapes = {name: (view.image_size[1], view.image_size[0]) for name, view in renderer.views.items()}
-        self._offsets: dict[str, int] = {}
-        size = 0
-        for name in self._planes:
-            self._offsets[name] = size
-            size += int(np.prod(self._shapes[name]))
-        folder = "/dev/shm" if os.path.isdir("/dev/shm") else None
-        # Closed below once sized: the child and the memmap open it by name.
-        handle = tempfile.NamedTemporaryFile(prefix="sim-lab-", suffix=".u16", dir=folder, delete=False)  # noqa: SIM115
-        self.shm_path = handle.name
-        self._lock = threading.Lock()
-        self._closed = False
         self._pose: Any = None                 # the world's pose after the last step (None: ask the child)
         #: (t, max |measured current|) after every world step, as the child reported it with each step.
         self.current_trace: list[tuple[float, float]] = []
-        self.process: subprocess.Popen[bytes] | None = None
         self.world = _Remote(self, "world")
         self.amplifier_fake = _Remote(self, "amplifier_fake")
         self.renderer_settings = renderer.settings
@@ -87,21 +78,16 @@ class LabProcess:
         self.final_amplifier_state: Any = None
         from drivers.loopback.lab import Exposures
 
-        self.exposures = Exposures(self.render_at, self.views)
+        frames = FramesFile.create(renderer.views, prefix="sim-lab-")
+        self.shm_path = frames.path
+        self._link = ChildLink("drivers.loopback.lab_process", frames)
+        self.process = self._link.process
+        self.exposures = Exposures(self.render_at, self.views, self.process)
         try:
-            handle.truncate(2 * size)
-            handle.close()
-            self._frames = np.memmap(self.shm_path, dtype="<u2", mode="r+", shape=(size,))
-            self.process = subprocess.Popen(
-                [sys.executable, "-m", "drivers.loopback.lab_process", self.shm_path],
-                stdin=subprocess.PIPE, stdout=subprocess.PIPE)
-            assert self.process.stdin is not None and self.process.stdout is not None
-            self.exposures.process = self.process
-            self._to_child, self._from_child = self.process.stdin, self.process.stdout
             ready = self._request({
                 "world": world, "amplifier_config": amplifier_config, "amplifier_link": amplifier_link,
                 "ots": ots, "renderer": renderer, "substep_s": substep_s, "start_s": clock.now(),
-                "offsets": self._offsets, "shapes": self._shapes})
+                "shapes": frames.shapes})
             self.amplifier_url: str = ready["amplifier"]
             self.ots_url: str | None = ready["ots"]
         except BaseException:
@@ -112,23 +98,30 @@ class LabProcess:
 
     # -- the link ----------------------------------------------------------------------------------
     def _request(self, message: Any) -> Any:
-        with self._lock:
-            if self._closed:
+        return self._exchange(message, rendering=False)[0]
+
+    def _exchange(self, message: Any, *, rendering: bool) -> tuple[Any, dict[str, np.ndarray] | None]:
+        """The reply's value and, ``rendering``, the images the child wrote for it (read before the next
+        request can overwrite them)."""
+        with self._link.lock:
+            if self._link.closed:
                 raise LabProcessError("the simulated lab's process is closed")
             try:
-                _send(self._to_child, message)
-                reply = _receive(self._from_child)
+                self._link.send(message)
+                reply = self._link.receive()
             except (EOFError, OSError, ValueError) as err:
+                if rendering:
+                    raise LabProcessError(f"the simulated lab's process ended ({self._exit_status()}) while "
+                                          f"rendering: {err}") from err
                 raise LabProcessError(f"the simulated lab's process ended ({self._exit_status()}): world, "
                                       f"amplifier and tracker fakes are gone ({err})") from err
-        if "error" in reply:
-            raise LabProcessError(f"simulated lab: {reply['error']}")
-        return reply["value"]
+            if "error" in reply:
+                raise LabProcessError(f"simulated lab: {reply['error']}")
+            images = self._link.frames.read() if rendering else None
+        return reply["value"], images
 
     def _exit_status(self) -> str:
         process = self.process
-        if process is None:
-            return "not started"
         try:
             code = process.wait(0.5)
         except subprocess.TimeoutExpired:
@@ -192,28 +185,14 @@ class LabProcess:
         """The exposure at simulated ``t_s`` (``RenderedPair``; the images are the caller's own arrays)."""
         from drivers.loopback.xray_render import RenderedPair
 
-        with self._lock:
-            if self._closed:
-                raise LabProcessError("the simulated lab's process is closed")
-            try:
-                _send(self._to_child, ("render", t_s))
-                reply = _receive(self._from_child)
-            except (EOFError, OSError, ValueError) as err:
-                raise LabProcessError(f"the simulated lab's process ended ({self._exit_status()}) while "
-                                      f"rendering: {err}") from err
-            if "error" in reply:
-                raise LabProcessError(f"simulated lab: {reply['error']}")
-            images = {name: np.array(self._frames[self._offsets[name]:self._offsets[name]
-                                                  + int(np.prod(self._shapes[name]))].reshape(self._shapes[name]))
-                      for name in self._planes}
-        value = reply["value"]
+        value, images = self._exchange(("render", t_s), rendering=True)
         return RenderedPair(images=images, truth=value["truth"], pose=value["pose"], head_mm=value["head_mm"],
                             tail_mm=value["tail_mm"])
 
     # -- lifetime ------------------------------------------------------------------------------------
     @property
     def alive(self) -> bool:
-        return self.process is not None and self.process.poll() is None and not self._closed
+        return self.process.poll() is None and not self._link.closed
 
     def close(self, timeout_s: float = 5.0) -> None:
         """End the child (end of its input, then terminate/kill if it does not go) and remove the frames file.
@@ -221,27 +200,7 @@ class LabProcess:
         if self.alive:
             with contextlib.suppress(LabProcessError):
                 self.final_amplifier_state = self.call("amplifier_fake", "snapshot")
-        with self._lock:
-            if self._closed:
-                return
-            self._closed = True
-        process = self.process
-        if process is not None:
-            with contextlib.suppress(OSError):
-                process.stdin.close()   # type: ignore[union-attr]
-            try:
-                process.wait(timeout_s)
-            except subprocess.TimeoutExpired:
-                process.terminate()
-                try:
-                    process.wait(timeout_s)
-                except subprocess.TimeoutExpired:
-                    process.kill()
-                    process.wait()
-            with contextlib.suppress(OSError):
-                process.stdout.close()  # type: ignore[union-attr]
-        with contextlib.suppress(OSError):
-            os.unlink(self.shm_path)
+        self._link.close(timeout_s)
 
     def __enter__(self) -> LabProcess:
         return self
@@ -291,7 +250,7 @@ def _url(server: Any) -> str | None:
     return server.path if hasattr(server, "path") else server.address
 
 
-def _answer(lab: Any, frames: np.memmap, offsets: dict[str, int], request: Any) -> Any:
+def _answer(lab: Any, frames: FramesFile, request: Any) -> Any:
     kind = request[0]
     if kind == "step_to":
         before = len(lab.current_trace)
@@ -301,8 +260,7 @@ def _answer(lab: Any, frames: np.memmap, offsets: dict[str, int], request: Any) 
         return pose, trace
     if kind == "render":
         rendered = lab.render_at(request[1])
-        for name, image in rendered.images.items():
-            frames[offsets[name]:offsets[name] + image.size] = image.reshape(-1)
+        frames.write(rendered.images)
         return {"truth": rendered.truth, "head_mm": rendered.head_mm, "tail_mm": rendered.tail_mm,
                 "pose": rendered.pose}
     target = lab if request[1] == _OWN else getattr(lab, request[1])
@@ -316,45 +274,28 @@ def _answer(lab: Any, frames: np.memmap, offsets: dict[str, int], request: Any) 
 
 def _serve(shm_path: str, requests: BinaryIO, replies: BinaryIO) -> int:
     try:
-        setup = _receive(requests)
+        setup = receive(requests)
         lab = _build(setup)
     except EOFError:
         return 0
     except Exception as err:  # noqa: BLE001 - reported to the parent, which raises it there
-        _send(replies, {"error": f"{type(err).__name__}: {err}"})
+        send(replies, error_reply(err))
         return 1
     try:
-        offsets, shapes = setup["offsets"], setup["shapes"]
-        size = sum(int(np.prod(shape)) for shape in shapes.values())
-        frames = np.memmap(shm_path, dtype="<u2", mode="r+", shape=(size,))
-        _send(replies, {"value": {"amplifier": _url(lab.amplifier_server), "ots": _url(lab.ots_server)}})
-        while True:
-            try:
-                request = _receive(requests)
-            except EOFError:
-                return 0       # the parent closed the pipe or died
-            try:
-                reply = {"value": _answer(lab, frames, offsets, request)}
-            except Exception as err:  # noqa: BLE001 - reported to the parent, which raises it there
-                reply = {"error": f"{type(err).__name__}: {err}"}
-            _send(replies, reply)
+        frames = FramesFile(shm_path, setup["shapes"])
+        send(replies, {"value": {"amplifier": _url(lab.amplifier_server), "ots": _url(lab.ots_server)}})
+        return answer_requests(requests, replies, lambda request: _answer(lab, frames, request))
     finally:
         lab.close()
         # The frames file goes with us (the parent's close removes it too; whoever is first).
-        with contextlib.suppress(OSError):
-            os.unlink(shm_path)
+        FramesFile.remove(shm_path)
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = sys.argv[1:] if argv is None else argv
-    # Ctrl-C reaches the whole process group: the parent shuts the session down (ramping the coils to zero
-    # through the amplifier fake served here) and then closes our input.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    # The replies get stdout's pipe to themselves; anything printed goes to stderr instead.
-    replies = os.fdopen(os.dup(sys.stdout.fileno()), "wb")
-    os.dup2(sys.stderr.fileno(), sys.stdout.fileno())
+    # Ctrl-C is ignored here: the parent shuts the session down (ramping the coils to zero through the
+    # amplifier fake served here) and then closes our input. Logging goes to stderr, as does anything printed.
     logging.basicConfig(level=logging.WARNING, format="simulated lab: %(levelname)s %(name)s: %(message)s")
-    return _serve(args[0], sys.stdin.buffer, replies)
+    return child_main(_serve, argv)
 
 
 if __name__ == "__main__":
