@@ -41,7 +41,14 @@ from appliance.compiled import warm_up_all
 from appliance.control import ActuationModel, CurrentAllocator, PathFollower, SafetySupervisor, load_coils, load_path
 from appliance.device_factory import Devices, open_devices
 from appliance.errors import ConfigError, DeviceError
-from appliance.orchestrator import FrameReport, LoopListener, LoopSettings, Orchestrator, recognition_settings
+from appliance.orchestrator import (
+    FrameReport,
+    LoopListener,
+    LoopSettings,
+    Orchestrator,
+    collect_and_freeze_session,
+    recognition_settings,
+)
 from appliance.recognition import PostureTracker
 from appliance.robots import load_robots, select_robot
 from appliance.session_config import Session
@@ -176,7 +183,9 @@ class Simulation:
             # cold compile (minutes on a loaded machine) the world's catch-up would outlast the start
             # and hold the amplifier fake's lock while the loop waits for its replies.
             warm_up_all()
-            _out_of_the_collectors_way()
+            # While simulated time stands still; the orchestrator's start does it again (only what was made
+            # since to scan) before the output goes on.
+            collect_and_freeze_session()
         except BaseException:
             self.devices.close()
             raise
@@ -224,7 +233,6 @@ class Simulation:
 
         with bench.real_time():
             orchestrator.start()
-        _out_of_the_collectors_way()
         start = bench.clock.now()
         wall_start = time.perf_counter()
         frame = math.floor(start * fps) + 1
@@ -280,16 +288,6 @@ class Simulation:
                          reached_end_s=reached, truth=truth, tracked_mm=tracked, reports=reports,
                          current_trace=list(bench.current_trace), fault_times=fault_times, stop_t_s=stop_t,
                          shutdown_safe=safe, path_mm=self.follower.points.copy())
-
-
-def _out_of_the_collectors_way() -> None:
-    """Collect now and freeze what is left (``gc.freeze``): the devices, kernels and calibration live as long
-    as the session. Otherwise the cyclic collector's first full collection during the loop scans them all,
-    about once per 20 s run, inside a frame (57 ms measured in a recognition step at 768 x 672, load ~6);
-    later full collections scan only what the loop made. Called before the loop starts (the output is off,
-    or simulated time stands still); :meth:`Simulation.close` unfreezes."""
-    gc.collect()
-    gc.freeze()
 
 
 def percentile_ms(values: list[float], q: float) -> float:
