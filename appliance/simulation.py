@@ -27,6 +27,7 @@ vanishing from the images (tracking loss), the grabbers going silent.
 """
 from __future__ import annotations
 
+import dataclasses
 import gc
 import logging
 import math
@@ -256,14 +257,14 @@ class Simulation:
                 self.frames.expect = frame
                 report = orchestrator.step()
                 if lab_lost is not None:
-                    reports.append(report)
+                    reports.append(_kept(report))
                     stop_t = report.t_s if report.stopped else stop_t
                     break
                 pose = bench.pose()
                 sample = TruthSample(bench.clock.now(), pose.centroid_mm,
                                      path_distance(self.follower.points, pose.centroid_mm))
                 truth.append(sample)
-                reports.append(report)
+                reports.append(_kept(report))
                 if report.tracked and report.posture is not None:
                     tracked.append(np.asarray(report.posture["centroid_mm"], float))
                 if report.done and reached is None:
@@ -288,6 +289,13 @@ class Simulation:
                          reached_end_s=reached, truth=truth, tracked_mm=tracked, reports=reports,
                          current_trace=list(bench.current_trace), fault_times=fault_times, stop_t_s=stop_t,
                          shutdown_safe=safe, path_mm=self.follower.points.copy())
+
+
+def _kept(report: FrameReport) -> FrameReport:
+    """The report as the run's result keeps it: without the pair's images (the listeners have seen them). Kept,
+    they would hold every frame of the run in memory (2 x 1 MB a step at 768 x 672) and, with them, every
+    buffer the grabbers' drivers would otherwise reuse."""
+    return dataclasses.replace(report, images=None)
 
 
 def percentile_ms(values: list[float], q: float) -> float:

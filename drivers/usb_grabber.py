@@ -157,7 +157,7 @@ class UsbGrabber(FrameSource):
         self.max_queued = max_queued
         # Transfers are read into pooled buffers lent to the assembler: a frame that fits one transfer is
         # handed on as a view on it (no copy), and that buffer is read into again only once nothing holds it.
-        self._transfers = proto.PayloadBuffers(keep=max_queued + 6, make=lambda n: array.array("B", bytes(n)))
+        self._transfers = proto.PayloadBuffers(keep=max_queued + 6, make=lambda n: array.array("B", [0]) * n)
         self._assembler = proto.FrameAssembler(buffers=proto.PayloadBuffers(keep=max_queued + 6))
         self._queue: deque[tuple[proto.AssembledFrame, float]] = deque()
         self._stats = UsbLinkStats()

@@ -68,6 +68,8 @@ def test_listeners_see_start_frames_status_and_stop() -> None:
         assert coils_are_off(sim)
     assert collector.started and "amplifier" in collector.started[0]["devices"]
     assert len(collector.frames) == len(result.reports) >= 14
+    # Listeners see each pair's images; the run's result does not keep them (nor, so, every frame of the run).
+    assert all(r.images is not None for r in collector.frames) and all(r.images is None for r in result.reports)
     assert [r.frame for r in collector.frames] == sorted({r.frame for r in collector.frames})
     assert {"amplifier", "xray"} <= set(collector.status)
     assert collector.stopped == [{"reason": None, "safe": True, "steps": len(result.reports),
