@@ -27,6 +27,7 @@ vanishing from the images (tracking loss), the grabbers going silent.
 """
 from __future__ import annotations
 
+import dataclasses
 import gc
 import logging
 import math
@@ -41,7 +42,14 @@ from appliance.compiled import warm_up_all
 from appliance.control import ActuationModel, CurrentAllocator, PathFollower, SafetySupervisor, load_coils, load_path
 from appliance.device_factory import Devices, open_devices
 from appliance.errors import ConfigError, DeviceError
-from appliance.orchestrator import FrameReport, LoopListener, LoopSettings, Orchestrator, recognition_settings
+from appliance.orchestrator import (
+    FrameReport,
+    LoopListener,
+    LoopSettings,
+    Orchestrator,
+    collect_and_freeze_session,
+    recognition_settings,
+)
 from appliance.recognition import PostureTracker
 from appliance.robots import load_robots, select_robot
 from appliance.session_config import Session
@@ -176,7 +184,9 @@ class Simulation:
             # cold compile (minutes on a loaded machine) the world's catch-up would outlast the start
             # and hold the amplifier fake's lock while the loop waits for its replies.
             warm_up_all()
-            _out_of_the_collectors_way()
+            # While simulated time stands still; the orchestrator's start does it again (only what was made
+            # since to scan) before the output goes on.
+            collect_and_freeze_session()
         except BaseException:
             self.devices.close()
             raise
@@ -224,7 +234,6 @@ class Simulation:
 
         with bench.real_time():
             orchestrator.start()
-        _out_of_the_collectors_way()
         start = bench.clock.now()
         wall_start = time.perf_counter()
         frame = math.floor(start * fps) + 1
@@ -248,14 +257,14 @@ class Simulation:
                 self.frames.expect = frame
                 report = orchestrator.step()
                 if lab_lost is not None:
-                    reports.append(report)
+                    reports.append(_kept(report))
                     stop_t = report.t_s if report.stopped else stop_t
                     break
                 pose = bench.pose()
                 sample = TruthSample(bench.clock.now(), pose.centroid_mm,
                                      path_distance(self.follower.points, pose.centroid_mm))
                 truth.append(sample)
-                reports.append(report)
+                reports.append(_kept(report))
                 if report.tracked and report.posture is not None:
                     tracked.append(np.asarray(report.posture["centroid_mm"], float))
                 if report.done and reached is None:
@@ -282,14 +291,11 @@ class Simulation:
                          shutdown_safe=safe, path_mm=self.follower.points.copy())
 
 
-def _out_of_the_collectors_way() -> None:
-    """Collect now and freeze what is left (``gc.freeze``): the devices, kernels and calibration live as long
-    as the session. Otherwise the cyclic collector's first full collection during the loop scans them all,
-    about once per 20 s run, inside a frame (57 ms measured in a recognition step at 768 x 672, load ~6);
-    later full collections scan only what the loop made. Called before the loop starts (the output is off,
-    or simulated time stands still); :meth:`Simulation.close` unfreezes."""
-    gc.collect()
-    gc.freeze()
+def _kept(report: FrameReport) -> FrameReport:
+    """The report as the run's result keeps it: without the pair's images (the listeners have seen them). Kept,
+    they would hold every frame of the run in memory (2 x 1 MB a step at 768 x 672) and, with them, every
+    buffer the grabbers' drivers would otherwise reuse."""
+    return dataclasses.replace(report, images=None)
 
 
 def percentile_ms(values: list[float], q: float) -> float:

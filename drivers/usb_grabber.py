@@ -8,7 +8,10 @@ grabber who it is (IDENTIFY: plane, size, pixel formats), so a source knows its 
 opened; on open it claims the vendor interface, sets rate and exposure when asked and starts
 acquisition (STOP and release on close); ``read``
 pulls bulk transfers of any size into a :class:`~firmware_protocol.usb_grabber.FrameAssembler`, which
-hands on only frames whose header and payload CRCs check out. Corrupt headers, bad CRCs and truncated
+hands on only frames whose header and payload CRCs check out (the payload CRC runs transfer by transfer, so
+after the last one only its own bytes are checked). Transfers land in pooled buffers lent to the assembler:
+a frame inside one transfer is handed on as a view on it, and a buffer is read into again only once no
+frame or array refers to it. Corrupt headers, bad CRCs and truncated
 frames are counted (``counters.corrupt``, details in :attr:`UsbGrabber.link_stats`) and skipped; an
 endpoint stall is cleared (CLEAR_FEATURE(HALT)) and the stream resumes at the next frame; a transfer
 timeout just means no bytes yet. A vanished device raises :class:`LinkLostError`.
@@ -73,6 +76,7 @@ class UsbLinkStats:
     bad_crc: int = 0
     truncated: int = 0
     skipped_bytes: int = 0
+    buffers_made: int = 0    # transfer and payload buffers allocated; stops growing unless frames are held long
 
 
 def _serial_of(device: usb.core.Device) -> str | None:
@@ -151,9 +155,10 @@ class UsbGrabber(FrameSource):
         self.transfer_size = transfer_size
         self.poll_s = poll_s
         self.max_queued = max_queued
-        self._buffer = array.array("B", bytes(transfer_size))
-        self._view = memoryview(self._buffer)
-        self._assembler = proto.FrameAssembler()
+        # Transfers are read into pooled buffers lent to the assembler: a frame that fits one transfer is
+        # handed on as a view on it (no copy), and that buffer is read into again only once nothing holds it.
+        self._transfers = proto.PayloadBuffers(keep=max_queued + 6, make=lambda n: array.array("B", [0]) * n)
+        self._assembler = proto.FrameAssembler(buffers=proto.PayloadBuffers(keep=max_queued + 6))
         self._queue: deque[tuple[proto.AssembledFrame, float]] = deque()
         self._stats = UsbLinkStats()
         self._corrupt_seen = 0
@@ -192,7 +197,7 @@ class UsbGrabber(FrameSource):
         a = self._assembler.stats
         s = self._stats
         return UsbLinkStats(s.transfers, s.bytes, s.usb_timeouts, s.stalls, a.corrupt_headers, a.bad_crc,
-                            a.truncated, a.skipped_bytes)
+                            a.truncated, a.skipped_bytes, self._transfers.made + self._assembler.buffers.made)
 
     def _open_internal(self) -> None:
         try:
@@ -243,21 +248,8 @@ class UsbGrabber(FrameSource):
             if remaining <= 0:
                 return None
             timeout_ms = max(1, int(min(remaining, self.poll_s) * 1000))
-            try:
-                n = self.device.read(proto.BULK_IN_ENDPOINT, self._buffer, timeout=timeout_ms)
-            except usb.core.USBTimeoutError:
-                self._stats.usb_timeouts += 1
+            if not self._transfer(timeout_ms):
                 continue
-            except usb.core.USBError as err:
-                if getattr(err, "errno", None) == errno.EPIPE:
-                    self._recover_stall()
-                    continue
-                raise translate_usb_error(err, f"{self.name}: bulk read") from err
-            self._stats.transfers += 1
-            self._stats.bytes += n
-            now = time.monotonic()
-            for assembled in self._assembler.feed(self._view[:n]):
-                self._queue.append((assembled, now))
             # Whatever the assembler rejected is counted once, as corrupt.
             corrupt = self._assembler.stats.corrupt
             if corrupt > self._corrupt_seen:
@@ -268,6 +260,28 @@ class UsbGrabber(FrameSource):
             while len(self._queue) > self.max_queued:
                 # The host fell behind: the oldest frames go (they show as a number gap, i.e. dropped).
                 self._queue.popleft()
+
+    def _transfer(self, timeout_ms: int) -> bool:
+        """One bulk transfer into a free pooled buffer, fed to the assembler; the frames it completes are
+        queued, stamped with the time it returned. False when there was none (timeout, cleared stall).
+        A method of its own so that no local name outlives it and keeps the buffer looking in use."""
+        buffer = self._transfers.take(self.transfer_size)
+        try:
+            n = self.device.read(proto.BULK_IN_ENDPOINT, buffer, timeout=timeout_ms)
+        except usb.core.USBTimeoutError:
+            self._stats.usb_timeouts += 1
+            return False
+        except usb.core.USBError as err:
+            if getattr(err, "errno", None) == errno.EPIPE:
+                self._recover_stall()
+                return False
+            raise translate_usb_error(err, f"{self.name}: bulk read") from err
+        now = time.monotonic()
+        self._stats.transfers += 1
+        self._stats.bytes += n
+        for assembled in self._assembler.feed(memoryview(buffer)[:n], lent=True):
+            self._queue.append((assembled, now))
+        return True
 
     def _recover_stall(self) -> None:
         self._stats.stalls += 1

@@ -12,9 +12,12 @@ fake device both use this module. All integers are little-endian; CRCs are CRC-3
 from __future__ import annotations
 
 import struct
+import sys
 import zlib
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import IntEnum
+from typing import Any
 
 from firmware_protocol.errors import CrcError, FrameError, TruncatedFrameError
 
@@ -224,7 +227,37 @@ class AssemblerStats:
 @dataclass(frozen=True)
 class AssembledFrame:
     header: FrameHeader
-    payload: bytes | bytearray   # exactly payload_length bytes, CRC checked; owned by the frame
+    payload: bytes | bytearray | memoryview   # exactly payload_length bytes, CRC checked; reused once unreferenced
+
+
+class PayloadBuffers:
+    """Payload buffers reused from frame to frame; a buffer is handed out again only once nothing but this
+    pool refers to it, so a frame (or any numpy view on it) that a consumer still holds is never overwritten.
+
+    "Refers to" is CPython's reference count: every holder of the payload (the frame, ``np.frombuffer`` on it
+    and views of that array, a ``memoryview``) keeps a reference to the buffer. At most ``keep`` buffers
+    are pooled; when all are in use a new one is made and the oldest leaves the pool (it is freed as usual
+    once its last holder lets go).
+    """
+
+    def __init__(self, keep: int = 8, make: Callable[[int], Any] = bytearray) -> None:
+        self.keep = keep
+        self.make = make   # length -> a new zeroed buffer (the driver's transfers need array.array("B"))
+        self._buffers: list[Any] = []
+        self.made = 0      # buffers allocated (a steady stream reuses them: this stops growing)
+
+    def take(self, length: int) -> Any:
+        buffers = self._buffers
+        for i in range(len(buffers)):
+            # 2 = the pool's list + getrefcount's argument (indexing, not a loop variable that would add one).
+            if len(buffers[i]) == length and sys.getrefcount(buffers[i]) == 2:
+                return buffers[i]
+        buffer = self.make(length)
+        self.made += 1
+        if len(buffers) >= self.keep:
+            del buffers[0]
+        buffers.append(buffer)
+        return buffer
 
 
 @dataclass
@@ -234,7 +267,13 @@ class FrameAssembler:
     Two states. *Looking*: bytes gather in a small buffer until a magic and a valid header are found
     (garbage before it is skipped, a header failing its checks is counted and the search goes on one
     byte later). *Collecting*: the payload is copied straight from the transfers into a buffer of the
-    announced length, which becomes the frame: one copy per byte on the common path. The device ends a
+    announced length, which becomes the frame: one copy per byte on the common path. The payload CRC
+    runs over each piece as it is copied (zlib's running value), so once the last transfer is in only
+    its own bytes remain to check; buffers come from :class:`PayloadBuffers`, which reuses one only when
+    nothing outside it still refers to it (a fresh 1-2 MB buffer per frame is zero-filled and faulted
+    in page by page, inside the frame's latency when the frame is a single transfer). A caller that
+    lends its transfer buffers (``feed(..., lent=True)``) gets a frame that lies wholly in one transfer
+    as a view on that transfer, with no copy at all. The device ends a
     transfer at the end of each frame, so a transfer that begins with a valid header while a payload
     is being collected means the frame was cut short: it is counted as truncated and the new frame
     starts at once. A complete payload whose CRC fails is counted as a bad CRC, or as truncated when a
@@ -243,12 +282,14 @@ class FrameAssembler:
     """
 
     stats: AssemblerStats = field(default_factory=AssemblerStats)
+    buffers: PayloadBuffers = field(default_factory=PayloadBuffers)
 
     def __post_init__(self) -> None:
         self._buf = bytearray()                  # looking: bytes not yet known to belong to a frame
         self._header: FrameHeader | None = None  # collecting: the valid header ...
         self._payload = bytearray()              # ... its payload buffer ...
-        self._filled = 0                         # ... and how much of it has arrived
+        self._filled = 0                         # ... how much of it has arrived ...
+        self._crc = 0                            # ... and the CRC-32 of what has
 
     @property
     def buffered(self) -> int:
@@ -261,8 +302,12 @@ class FrameAssembler:
         self._header = None
         self._payload = bytearray()
         self._filled = 0
+        self._crc = 0
 
-    def feed(self, data: bytes | bytearray | memoryview) -> list[AssembledFrame]:
+    def feed(self, data: bytes | bytearray | memoryview, *, lent: bool = False) -> list[AssembledFrame]:
+        """The frames completed by these bytes. ``lent``: the caller will not write into ``data``'s buffer
+        while anything refers to it (it takes its transfer buffers from a :class:`PayloadBuffers`), so a
+        good frame wholly inside ``data`` is handed on as a view on it, without copying its payload."""
         out: list[AssembledFrame] = []
         view = memoryview(data).cast("B") if isinstance(data, memoryview) else memoryview(data)
         while True:
@@ -274,11 +319,22 @@ class FrameAssembler:
             if not self._buf and len(view) >= HEADER_SIZE and view[:4] == FRAME_MAGIC:
                 # Common path: a transfer starts with a header; no copy through the looking buffer.
                 try:
-                    self._start(FrameHeader.decode(view[:HEADER_SIZE]))
+                    header: FrameHeader | None = FrameHeader.decode(view[:HEADER_SIZE])
+                except FrameError:
+                    header = None
+                if header is not None:
+                    end = HEADER_SIZE + header.payload_length
+                    if lent and len(view) >= end:
+                        payload = view[HEADER_SIZE:end]
+                        if zlib.crc32(payload) == header.payload_crc:
+                            self.stats.frames += 1
+                            out.append(AssembledFrame(header, payload))
+                            view = view[end:]
+                            continue
+                        # A bad payload takes the copying path, which counts and resynchronises as always.
+                    self._start(header)
                     view = view[HEADER_SIZE:]
                     continue
-                except FrameError:
-                    pass
             if len(view):
                 self._buf += view
                 view = view[len(view):]
@@ -319,8 +375,9 @@ class FrameAssembler:
     # -- collecting ------------------------------------------------------------------------------
     def _start(self, header: FrameHeader) -> None:
         self._header = header
-        self._payload = bytearray(header.payload_length)
+        self._payload = self.buffers.take(header.payload_length)
         self._filled = 0
+        self._crc = 0
 
     def _collect(self, view: memoryview, out: list[AssembledFrame]) -> memoryview:
         """Copy payload bytes from ``view``; returns what is left of it."""
@@ -333,7 +390,9 @@ class FrameAssembler:
             self._payload = bytearray()
             return view
         take = min(len(view), header.payload_length - self._filled)
-        self._payload[self._filled:self._filled + take] = view[:take]
+        piece = view[:take]
+        self._payload[self._filled:self._filled + take] = piece
+        self._crc = zlib.crc32(piece, self._crc)
         self._filled += take
         rest = view[take:]
         if self._filled < header.payload_length:
@@ -341,7 +400,7 @@ class FrameAssembler:
         payload = self._payload
         self._header = None
         self._payload = bytearray()
-        if zlib.crc32(payload) == header.payload_crc:
+        if self._crc == header.payload_crc:
             self.stats.frames += 1
             out.append(AssembledFrame(header, payload))
             return rest

@@ -60,11 +60,12 @@ def test_injected_faults_are_counted_survived_and_never_handed_on() -> None:
     assert stats.stalls == 2 and stats.usb_timeouts >= 1
 
 
-def test_random_faults_over_many_frames() -> None:
+@pytest.mark.parametrize("transfer_kib", [3, 1024])   # frames over transfers; a frame per transfer (lent, no copy)
+def test_random_faults_over_many_frames(transfer_kib: int) -> None:
     rates = {Fault.CORRUPT_HEADER: 0.03, Fault.BAD_CRC: 0.03, Fault.TRUNCATE: 0.03, Fault.STALL: 0.02,
              Fault.TIMEOUT: 0.03, Fault.SHORT_TRANSFERS: 0.05, Fault.GARBAGE: 0.03}
     backend, device, feed = fake(fault_rates=rates)
-    with open_source(f"{URL}?transfer_kib=3", backend=backend) as source:
+    with open_source(f"{URL}?transfer_kib={transfer_kib}", backend=backend) as source:
         got = [source.read(2.0) for _ in range(300)]
         stats = source.link_stats
     injected = device.faults_injected
@@ -79,6 +80,23 @@ def test_random_faults_over_many_frames() -> None:
     assert expected_corrupt - stats.stalls <= source.counters.corrupt <= expected_corrupt
     assert stats.stalls == sum(f is Fault.STALL for n, f in injected.items() if n <= last)
     assert source.counters.dropped == last + 1 - len(got)
+
+
+@pytest.mark.parametrize("transfer_kib", [1, 1024])   # payloads collected over transfers; views on one transfer
+def test_frames_a_consumer_holds_are_never_overwritten_and_the_rest_reuse_buffers(transfer_kib: int) -> None:
+    backend, _, feed = fake()
+    held = {}
+    with open_source(f"{URL}?transfer_kib={transfer_kib}", backend=backend) as source:
+        assert isinstance(source, UsbGrabber)
+        for _ in range(80):
+            frame = source.read(2.0)
+            if frame.number % 20 == 3:
+                held[frame.number] = frame.image[4:40, 8:30]    # a region of interest: a view, as the tracker's
+            del frame
+        made = source.link_stats.buffers_made
+    # The feed cycles through 4 different images, so a reused buffer under a held frame would show.
+    assert all(np.array_equal(image, feed.frame(n).image[4:40, 8:30]) for n, image in held.items())
+    assert len(held) == 4 and made <= 2 * (len(held) + source.max_queued + 2)   # 80 frames: without reuse >= 80
 
 
 def test_control_exchange_is_byte_exact() -> None:

@@ -78,25 +78,27 @@ def frames(count: int, width: int = 5, height: int = 3) -> list[bytes]:
     return out
 
 
+@pytest.mark.parametrize("lent", [False, True])
 @settings(max_examples=60, deadline=None)
 @given(cuts=st.lists(st.integers(min_value=0, max_value=20 * 70), max_size=40))
-def test_frames_survive_any_split_into_transfers(cuts: list[int]) -> None:
+def test_frames_survive_any_split_into_transfers(lent: bool, cuts: list[int]) -> None:
     stream = b"".join(frames(20))
     bounds = sorted({0, len(stream), *[min(c, len(stream)) for c in cuts]})
     assembler = proto.FrameAssembler()
     got = []
     for a, b in zip(bounds, bounds[1:]):
-        got += assembler.feed(stream[a:b])
+        got += assembler.feed(stream[a:b], lent=lent)
     assert [f.header.number for f in got] == list(range(20))
     assert [f.payload for f in got] == [w[proto.HEADER_SIZE:] for w in frames(20)]
     assert assembler.stats.corrupt == 0 and assembler.stats.skipped_bytes == 0
 
 
+@pytest.mark.parametrize("lent", [False, True])
 @settings(max_examples=60, deadline=None)
 @given(damage=st.dictionaries(st.integers(min_value=1, max_value=18),
                               st.sampled_from(["header", "payload", "truncate", "garbage"]), max_size=6),
        chunk=st.integers(min_value=1, max_value=200))
-def test_damage_is_counted_and_the_rest_arrives_intact(damage: dict[int, str], chunk: int) -> None:
+def test_damage_is_counted_and_the_rest_arrives_intact(lent: bool, damage: dict[int, str], chunk: int) -> None:
     clean = frames(20)
     stream = bytearray()
     for n, wire in enumerate(clean):
@@ -114,7 +116,7 @@ def test_damage_is_counted_and_the_rest_arrives_intact(damage: dict[int, str], c
     assembler = proto.FrameAssembler()
     got = []
     for start in range(0, len(stream), chunk):
-        got += assembler.feed(bytes(stream[start:start + chunk]))
+        got += assembler.feed(bytes(stream[start:start + chunk]), lent=lent)
     lost = {n for n, kind in damage.items() if kind != "garbage"}
     assert [f.header.number for f in got] == [n for n in range(20) if n not in lost]
     assert all(f.payload == clean[f.header.number][proto.HEADER_SIZE:] for f in got)
@@ -143,3 +145,78 @@ def test_a_cut_frame_is_counted_as_truncated_and_the_next_one_arrives_early() ->
     # Early: frame 2 is handed on as soon as it is complete, without waiting for frame 1's claimed length.
     assembler = proto.FrameAssembler()
     assert [f.header.number for f in assembler.feed(one[:proto.HEADER_SIZE + 100] + two)] == [2]
+
+
+@settings(max_examples=40, deadline=None)
+@given(damage=st.dictionaries(st.integers(min_value=0, max_value=11),
+                              st.sampled_from(["header", "payload", "truncate", "garbage"]), max_size=5),
+       chunk=st.integers(min_value=1, max_value=400))
+def test_lending_the_transfers_changes_nothing_but_the_copy(damage: dict[int, str], chunk: int) -> None:
+    stream = bytearray()
+    for n, wire in enumerate(frames(12)):
+        wire = bytearray(wire)
+        kind = damage.get(n)
+        if kind == "header":
+            wire[12] ^= 0x40
+        elif kind == "payload":
+            wire[-1] ^= 0x80
+        elif kind == "truncate":
+            del wire[proto.HEADER_SIZE + 11:]
+        elif kind == "garbage":
+            wire[:0] = b"XRF1" + bytes(50)
+        stream += wire
+    results = []
+    for lent in (False, True):
+        assembler = proto.FrameAssembler()
+        got = []
+        for start in range(0, len(stream), chunk):
+            got += [(f.header, bytes(f.payload)) for f in assembler.feed(bytes(stream[start:start + chunk]), lent=lent)]
+        results.append((got, assembler.stats, assembler.buffered))
+    assert results[0] == results[1]
+
+
+def test_a_frame_inside_a_lent_transfer_is_a_view_on_it_and_otherwise_a_copy() -> None:
+    wire = frames(1, width=40, height=30)[0]
+    transfer = bytearray(wire)
+    (lent,) = proto.FrameAssembler().feed(transfer, lent=True)
+    (copied,) = proto.FrameAssembler().feed(transfer)
+    assert isinstance(lent.payload, memoryview) and lent.payload.obj is transfer
+    assert bytes(lent.payload) == bytes(copied.payload) == wire[proto.HEADER_SIZE:]
+    transfer[proto.HEADER_SIZE] ^= 0xFF        # the caller breaking its promise shows in the view only
+    assert bytes(lent.payload) != bytes(copied.payload) == wire[proto.HEADER_SIZE:]
+
+
+def test_a_bad_payload_in_a_lent_transfer_is_counted_as_in_a_copied_one() -> None:
+    zero, one = frames(2, width=40, height=30)
+    bad = bytearray(zero)
+    bad[-5] ^= 0x10
+    assembler = proto.FrameAssembler()
+    assert assembler.feed(bad, lent=True) == [] and assembler.stats.bad_crc == 1
+    assert [f.header.number for f in assembler.feed(bytearray(one), lent=True)] == [1]
+    assert assembler.stats.skipped_bytes == len(zero)
+
+
+def test_payload_buffers_are_reused_only_once_nothing_refers_to_them() -> None:
+    import numpy as np
+
+    wires = frames(30, width=40, height=30)
+    assembler = proto.FrameAssembler(buffers=proto.PayloadBuffers(keep=4))
+    held = {}
+    for n, wire in enumerate(wires):
+        # Three transfers per frame: the payload is collected into a pooled buffer.
+        (frame,) = assembler.feed(wire[:17]) + assembler.feed(wire[17:900]) + assembler.feed(wire[900:])
+        if n in (0, 1, 2, 9):
+            held[n] = np.frombuffer(frame.payload, dtype="<u2")[5:]   # a view on a view, as the tracker's ROIs are
+        del frame
+        assert all(bytes(image) == wires[k][proto.HEADER_SIZE + 10:] for k, image in held.items())
+    # Frames let go give their buffer back; each held one keeps its own out of use.
+    assert assembler.buffers.made <= len(held) + 1
+
+
+def test_payload_buffers_of_a_full_pool_are_made_afresh() -> None:
+    pool = proto.PayloadBuffers(keep=2)
+    taken = [pool.take(64) for _ in range(5)]
+    assert len({id(buffer) for buffer in taken}) == 5 and pool.made == 5
+    del taken
+    again = pool.take(64)
+    assert pool.made == 5 and len(again) == 64 and pool.take(32) is not again and pool.made == 6
