@@ -157,6 +157,17 @@ def _reconstruct_weighted(calibration: Calibration, feat_p: Features2D, feat_q: 
         sigma_q, head_q, prev0, prev1, prev2, previous is not None, s.ambiguity_px, s.min_plane_angle_deg,
         s.max_axis_disagreement_deg, s.min_view_elongation, s.axis_floor_rad, s.tip_sigma_px, s.tip_rim_fraction,
         out)
+    return reconstruct_from_front(calibration, feat_p, feat_q, settings, previous, status, out)
+
+
+def reconstruct_from_front(calibration: Calibration, feat_p: Features2D, feat_q: Features2D,
+                           settings: RecognitionSettings, previous: np.ndarray | None, status: int,
+                           out: np.ndarray) -> Reconstruction:
+    """The default method's decisions on what :func:`.reconstruction_kernels.weighted_front` returned
+    (``status``) and wrote (``out``, its layout) for these features: the tracker's steady state runs
+    the front inside its one compiled call per pair (:mod:`.steady_kernels`) and finishes here."""
+    s = settings
+    G = calibration.packed
     if status == kernels.STATUS_PLANE_P or status == kernels.STATUS_PLANE_Q:
         name = "p" if status == kernels.STATUS_PLANE_P else "q"
         raise ValueError(f"view {name}: the two pixels coincide; no unique plane through them")

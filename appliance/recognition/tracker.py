@@ -39,7 +39,7 @@ from appliance.recognition.plausibility import (
     off_its_images,
 )
 from appliance.recognition.posture import Posture, ViewObservation
-from appliance.recognition.reconstruction import Reconstruction, reconstruct
+from appliance.recognition.reconstruction import Reconstruction, reconstruct, reconstruct_from_front
 from appliance.recognition.roi_search import find_in_roi
 from appliance.recognition.segmentation import (
     Blob,
@@ -48,6 +48,7 @@ from appliance.recognition.segmentation import (
     log_background,
 )
 from appliance.recognition.settings import RecognitionSettings
+from appliance.recognition.steady_state import SteadyPair
 
 log = logging.getLogger(__name__)
 
@@ -92,6 +93,10 @@ class PostureTracker:
         self.F = fundamental_matrix(calibration.p, calibration.q)
         #: Both views packed for the compiled kernels (the calibration is immutable).
         self._packed = calibration.packed
+        #: The steady state's one compiled call per pair, and its output for the last frame if that one was
+        #: found by it and remembered (what the lean pass starts from).
+        self._pair = SteadyPair(calibration, self.settings)
+        self._lean_from: np.ndarray | None = None
         self._log_bg: dict[str, LogBackground] = {}
         self._track: _Track | None = None
         self._last_search = "none"
@@ -103,6 +108,7 @@ class PostureTracker:
         """Forget the history and the cached backgrounds (the next frame is a full-frame detection)."""
         self._log_bg.clear()
         self._track = None
+        self._lean_from = None
 
     @property
     def tracking(self) -> bool:
@@ -119,7 +125,14 @@ class PostureTracker:
         """Recognise the robot in one biplane pair (raw detector intensities, robot darker than surroundings)."""
         images = {"p": self._checked(image_p, "p", frame), "q": self._checked(image_q, "q", frame)}
         timings = {"segmentation": 0.0, "features": 0.0, "correspondence": 0.0, "triangulation": 0.0}
-        found = self._search_rois(images, t, timings) if self._track is not None else None
+        front: tuple[int, np.ndarray] | None = None
+        found = None
+        if self._track is not None:
+            paired = self._search_pair(images, t, timings)
+            if paired is not None:
+                found, front = paired
+            else:
+                found = self._search_rois(images, t, timings)
         if found is None:
             found, failure = self._search_full(images, timings)
             if found is None:
@@ -131,7 +144,10 @@ class PostureTracker:
         start = time.perf_counter_ns()
         previous = self._track.direction if self._track is not None else None
         try:
-            rec = reconstruct(self.calibration, self.F, feats["p"], feats["q"], self.settings, previous)
+            if front is not None:
+                rec = reconstruct_from_front(self.calibration, feats["p"], feats["q"], self.settings, previous, *front)
+            else:
+                rec = reconstruct(self.calibration, self.F, feats["p"], feats["q"], self.settings, previous)
         except ValueError as err:
             self._lose()
             posture = Posture.lost(frame, t, f"reconstruction failed: {err}")
@@ -169,6 +185,7 @@ class PostureTracker:
         posture = self._posture(frame, t, rec, blobs)
         posture.timings_us = timings
         self._remember(posture)
+        self._lean_from = self._pair.out if front is not None else None
         return posture
 
     # ----------------------------------------------------------------------------------- searches
@@ -184,6 +201,44 @@ class PostureTracker:
 
     def _features(self, blob: Blob) -> Features2D:
         return features(blob, self.settings)
+
+    def _search_pair(self, images: dict[str, np.ndarray], t: float, timings: dict[str, float]
+                     ) -> tuple[tuple[dict[str, Blob], dict[str, Features2D]], tuple[int, np.ndarray]] | None:
+        """:meth:`_search_rois` and the reconstruction's front in one compiled call (:mod:`.steady_state`), or
+        None where that call does not apply or a view is not plainly found (then :meth:`_search_rois`)."""
+        track = self._track
+        assert track is not None
+        bg_p, bg_q = self._log_bg.get("p"), self._log_bg.get("q")
+        image_p, image_q = images["p"], images["q"]
+        if not self._pair.usable(image_p, image_q, bg_p, bg_q):
+            return None
+        assert bg_p is not None and bg_q is not None
+        # The prediction as _search_rois makes it (the projection and the ROIs are in the call).
+        dt = t - track.t
+        (x, y, z), (vx, vy, vz) = track.centroid, track.velocity
+        half = 0.5 * (track.length_mm or 0.0) + 1.0
+        direction = track.direction.tolist() if track.direction is not None else (0.0, 0.0, 0.0)
+        outlines = track.view_outline_px or {}
+        noise = self._roi_noise
+        sigmas = {}
+        for name, bg in (("p", bg_p), ("q", bg_q)):
+            known = noise.get(name)
+            reuse = known is not None and known[0] is bg and known[2] < NOISE_REMEASURE_FRAMES
+            sigmas[name] = (known[1] if reuse and known is not None else None, known[2] + 1 if reuse and known is not None else 1)
+        start = time.perf_counter_ns()
+        lean_from = self._lean_from if self.settings.lean_steady_state else None
+        found = self._pair.search(image_p, image_q, bg_p, bg_q, (x + vx * dt, y + vy * dt, z + vz * dt), direction,
+                                  half, outlines.get("p"), outlines.get("q"), sigmas["p"][0], sigmas["q"][0],
+                                  direction if track.direction is not None else None, lean_from, track.centroid)
+        if found is None:
+            return None
+        (blob_p, blob_q), (feat_p, feat_q), status, out = found
+        noise["p"] = (bg_p, blob_p.sigma, sigmas["p"][1])
+        noise["q"] = (bg_q, blob_q.sigma, sigmas["q"][1])
+        # Both views' search and the reconstruction's front are one call: timed as segmentation.
+        timings["segmentation"] += (time.perf_counter_ns() - start) / 1e3
+        self._last_search = "roi"
+        return ({"p": blob_p, "q": blob_q}, {"p": feat_p, "q": feat_q}), (status, out)
 
     def _search_rois(self, images: dict[str, np.ndarray], t: float, timings: dict[str, float]
                      ) -> tuple[dict[str, Blob], dict[str, Features2D]] | None:
@@ -379,6 +434,7 @@ class PostureTracker:
                              velocity, view_outline_px=outline)
 
     def _lose(self) -> None:
+        self._lean_from = None
         if self._track is None:
             return
         self._track.lost_frames += 1

@@ -1,0 +1,129 @@
+"""The steady state's one compiled call per pair (steady_state / steady_kernels) gives what the per-view path
+(find_in_roi per view, then reconstruct) gives, bit for bit: every posture record, every Blob and Features2D field,
+and the noise-sigma schedule, over short trajectories of several robots (clean and over a contrast-filled vessel)."""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from appliance.geometry import Calibration, View
+from appliance.recognition import PostureTracker, RecognitionSettings
+from appliance.recognition import tracker as tracker_module
+from appliance.recognition.steady_kernels import clutter_axis_sigma
+from appliance.recognition.features import clutter_axis_sigma_rad
+from appliance.recognition.steady_state import SteadyPair
+from appliance.robots import load_robots
+from drivers.loopback.scene_builders import S_BEND_CENTRELINE_MM, smooth_centreline
+from drivers.loopback.xray_render import (
+    BiplaneRenderer,
+    ImagingSettings,
+    RobotBody,
+    RobotPose,
+    VesselPhantom,
+    biplane_views,
+)
+
+
+@pytest.fixture(scope="module")
+def views() -> dict[str, object]:
+    return biplane_views(image_size=(384, 336), fov_mm=(90.0, 80.0))
+
+
+@pytest.fixture(scope="module")
+def calibration(views: dict[str, object]) -> Calibration:
+    return Calibration.from_views(*(View(n, v.K, v.dist, v.R, v.t, v.image_size)  # type: ignore[attr-defined]
+                                    for n, v in sorted(views.items())))
+
+
+def _same(a: object, b: object) -> None:
+    assert type(a) is type(b)
+    for f in dataclasses.fields(a):  # type: ignore[arg-type]
+        x, y = getattr(a, f.name), getattr(b, f.name)
+        if isinstance(x, np.ndarray):
+            assert x.dtype == y.dtype and x.shape == y.shape, f.name
+            np.testing.assert_array_equal(x, y, err_msg=f.name)
+        else:
+            assert x == y, (f.name, x, y)
+
+
+@pytest.mark.parametrize("robot,start,velocity,direction", [
+    (1, (3.0, -4.0, 5.0), (20.0, 10.0, -5.0), (0.3, 0.5, 0.81)),
+    (3, (-4.0, 0.5, 6.0), (30.0, 0.0, 0.0), (0.9, 0.4, 0.2)),       # along the vessel
+    (4, (-20.0, -11.0, 4.0), (0.0, 25.0, 5.0), (0.2, 0.9, 0.4)),    # across the vessel
+    (6, (1.0, 0.0, 6.0), (10.0, -10.0, 0.0), (0.6, -0.3, 0.74)),    # over the vessel
+    (7, (8.0, 6.0, -5.0), (-15.0, 5.0, 10.0), (-0.7, 0.2, 0.68)),
+])
+def test_one_call_per_pair_equals_the_per_view_path(views: dict[str, object], calibration: Calibration, robot: int,
+                                                    start: tuple[float, ...], velocity: tuple[float, ...],
+                                                    direction: tuple[float, ...],
+                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    spec = load_robots()[robot]
+    body = RobotBody(spec.length_mm, spec.diameter_mm, spec.tip_angle_deg, spec.attenuation_per_mm)
+    vessel = VesselPhantom(smooth_centreline(S_BEND_CENTRELINE_MM), 2.5, 0.06)
+    renderer = BiplaneRenderer(views, body, vessel=vessel, settings=ImagingSettings(), seed=robot)
+    settings = RecognitionSettings(dark_level=ImagingSettings().dark_level)
+    paired, per_view = PostureTracker(calibration, settings), PostureTracker(calibration, settings)
+    monkeypatch.setattr(per_view._pair, "usable", lambda *args: False)
+    # What each tracker searched and found (the blobs and features behind its postures).
+    calls = {"pair": 0}
+    real_pair = tracker_module.PostureTracker._search_pair
+
+    def counted(self, *args):  # type: ignore[no-untyped-def]
+        found = real_pair(self, *args)
+        calls["pair"] += found is not None
+        return found
+
+    monkeypatch.setattr(tracker_module.PostureTracker, "_search_pair", counted)
+    kept = {}
+    real_posture = tracker_module.PostureTracker._posture
+
+    def keep(self, frame, t, rec, blobs):  # type: ignore[no-untyped-def]
+        kept[(id(self), frame)] = (blobs, rec.view_features)
+        return real_posture(self, frame, t, rec, blobs)
+
+    monkeypatch.setattr(tracker_module.PostureTracker, "_posture", keep)
+    roi_frames = 0
+    for n in range(6):
+        t = n / 30.0
+        pose = RobotPose(np.array(start) + t * np.array(velocity), np.array(direction))
+        pair = renderer.render(pose)
+        a = paired.process(pair.images["p"], pair.images["q"], frame=n, t=t)
+        b = per_view.process(pair.images["p"], pair.images["q"], frame=n, t=t)
+        assert paired.last_search == per_view.last_search
+        assert a.to_record() == b.to_record()
+        assert a.direction_candidates is None or all(
+            np.array_equal(x, y) for x, y in zip(a.direction_candidates, b.direction_candidates or []))
+        if (id(paired), n) in kept:
+            (blobs_a, feats_a), (blobs_b, feats_b) = kept[(id(paired), n)], kept[(id(per_view), n)]
+            for name in ("p", "q"):
+                _same(blobs_a[name], blobs_b[name])
+                _same(feats_a[name], feats_b[name])
+        roi_frames += paired.last_search == "roi"
+        assert [v[1:] for v in paired._roi_noise.values()] == [v[1:] for v in per_view._roi_noise.values()]
+    assert roi_frames >= 3 and calls["pair"] == roi_frames
+
+
+def test_pair_path_is_not_used_for_other_inputs(calibration: Calibration) -> None:
+    pair = SteadyPair(calibration, RecognitionSettings())
+    image = np.zeros((336, 384), dtype=np.uint16)
+    from appliance.recognition.segmentation import log_background
+    bg = log_background(image + 1000, 48, 0.0)
+    assert pair.usable(image, image, bg, bg)
+    assert not pair.usable(image.astype(np.float32), image, bg, bg)
+    assert not pair.usable(image, image[:, ::2], bg, bg)
+    assert not pair.usable(image, image, bg, None)
+    assert not SteadyPair(calibration, RecognitionSettings(estimator="paper")).usable(image, image, bg, bg)
+
+
+def test_compiled_clutter_term_equals_the_python_one() -> None:
+    rng = np.random.default_rng(4)
+    cases = [(0.0, 10, 1.0, 5.0, 3.0, 1.0), (0.3, 50, 1.0, -1.0, 3.0, 1.0), (0.3, 50, 1.0, 5.0, 1.0, 3.0),
+             (0.2, 40, 1.2, 30.0, 4.0, -0.5), (math.nan, 40, 1.2, 30.0, 4.0, 1.0), (0.2, 40, 1.2, 30.0, math.nan, 1.0)]
+    cases += [(float(rng.uniform(0, 1)), int(rng.integers(1, 3000)), float(rng.uniform(0.1, 3)),
+               float(rng.uniform(1, 900)), float(rng.uniform(1, 400)), float(rng.uniform(0, 20))) for _ in range(300)]
+    for case in cases:
+        a, b = clutter_axis_sigma(*case), clutter_axis_sigma_rad(*case)
+        assert a == b or (math.isnan(a) and math.isnan(b)), case
