@@ -83,7 +83,8 @@ _KERNEL_SETTINGS: dict[int, tuple[RecognitionSettings, tuple]] = {}
 def _frozen(cls: type[T], fields: dict[str, Any]) -> T:
     """An instance of the frozen dataclass ``cls`` holding ``fields`` (every field, by name), made without
     its generated ``__init__``: that one sets each field through ``object.__setattr__`` (~3 us for a
-    :class:`Blob` or a :class:`Features2D`, one of each per view and frame). Neither class has a
+    :class:`Blob` or a :class:`Features2D`, one of each per view and frame). None of the classes built
+    so (:class:`Blob`, :class:`Features2D`, :class:`Roi`, :class:`.ViewObservation`) has a
     ``__post_init__``; the tests compare every field with the ones ``__init__`` builds."""
     instance = object.__new__(cls)
     instance.__dict__.update(fields)
@@ -120,7 +121,7 @@ def blob_and_features(out: np.ndarray, weights: np.ndarray, mask: np.ndarray, x0
     uncertainty with the clutter term if already computed (by :mod:`.steady_kernels`), else None (here)."""
     (wy0, wy1, wx0, wx1, height, baseline, strength, cx, cy, edge, minor, clutter, count, used_sigma,
      _, _, _, _, _, _, _, _, l1, l2, axis_sigma, head, ramp_plus, ramp_minus, *reaches) = out[:_OUT_SIZE].tolist()
-    window = Roi(x0 + int(wx0), y0 + int(wy0), x0 + int(wx1), y0 + int(wy1))
+    window = _frozen(Roi, {"x0": x0 + int(wx0), "y0": y0 + int(wy0), "x1": x0 + int(wx1), "y1": y0 + int(wy1)})
     pixel_count = int(count)
     # As segmentation._blob_from_component builds it.
     blob = _frozen(Blob, {

@@ -33,28 +33,37 @@ from appliance.recognition import reconstruction_kernels, roi_kernels, view_kern
 PAIR_FOUND = 0  # both views found; the front's status is at OUT_FRONT_STATUS
 PAIR_PER_VIEW = 1  # a view was not plainly found: take the per-view path
 
-#: Layout of the input array. The prediction (``IN_CENTRE``, ``IN_DIRECTION`` unit or zero, ``IN_HALF``
-#: the half length + 1 mm), the margin (px), then per view (``IN_VIEW + view * IN_VIEW_SIZE``) the
-#: numbers of the layout ``V_*``; then the reconstruction's settings and the previous direction.
+#: Layout of the input array. First what changes from frame to frame (``IN_FRAME_SIZE`` numbers, written
+#: in one assignment): the prediction (``IN_CENTRE``, ``IN_DIRECTION`` unit or zero, ``IN_HALF`` the half
+#: length + 1 mm), the last frame's 3D centroid (the lean pass moves its 2D bodies by its motion), the
+#: previous direction and 1 if there is one, then per view (``IN_VIEW + view * IN_VIEW_SIZE``) the numbers
+#: of the layout ``V_*``. Then the margin (px) and the reconstruction's settings.
 IN_CENTRE = 0
 IN_DIRECTION = 3
 IN_HALF = 6
-IN_MARGIN = 7
-IN_VIEW = 8
+IN_LAST_CENTRE = 7
+IN_PREVIOUS = 10
+IN_VIEW = 14
 V_HAS_OUTLINE = 0  # 1 if the last frame's 2D outline is known
 V_OUTLINE = 1  # 7: its centroid u, v, ends u0, v0, u1, v1 and the body's half width
 V_KNOWN_SIGMA = 8  # the noise sigma to reuse (0: measure it)
-V_FY = 9  # the coarse background's factors
-V_FX = 10
-V_HEIGHT = 11  # the image's shape
-V_WIDTH = 12
-V_LEAN = 13  # 1: try the lean pass from the previous pair's output (see lean_view)
+V_LEAN = 9  # 1: try the lean pass from the previous pair's output (see lean_view)
+V_FY = 10  # the coarse background's factors
+V_FX = 11
+V_HEIGHT = 12  # the image's shape
+V_WIDTH = 13
 IN_VIEW_SIZE = 14
-IN_FRONT = IN_VIEW + 2 * IN_VIEW_SIZE  # the reconstruction's settings, in weighted_front's order
+IN_FRAME_SIZE = IN_VIEW + 2 * IN_VIEW_SIZE
+IN_MARGIN = IN_FRAME_SIZE
+IN_FRONT = IN_MARGIN + 1  # the reconstruction's settings, in weighted_front's order
 FRONT_SETTINGS = 7  # ambiguity_px ... tip_rim_fraction
-IN_PREVIOUS = IN_FRONT + FRONT_SETTINGS  # 3: the previous direction, then 1 if there is one
-IN_LAST_CENTRE = IN_PREVIOUS + 4  # 3: the last frame's 3D centroid (the lean pass moves its 2D body by its motion)
-IN_SIZE = IN_LAST_CENTRE + 3
+#: The plain frame's checks (see _finish): max_clutter, max_length_over_width, min_path_attenuation_per_mm,
+#: max_reprojection_px, head_foreshortening, then per view its source (mm) and focal length (px) as
+#: plausibility has them.
+IN_FINISH = IN_FRONT + FRONT_SETTINGS
+FINISH_SETTINGS = 5
+IN_SOURCES = IN_FINISH + FINISH_SETTINGS
+IN_SIZE = IN_SOURCES + 8
 
 #: Layout of the output array: per view (``OUT_VIEW + view * OUT_VIEW_SIZE``) search_view's output
 #: (``roi_kernels`` layout, ``SEARCH_SIZE`` numbers), then the view's ROI ``x0, y0, x1, y1`` and its
@@ -68,7 +77,18 @@ R_EXTENT = SEARCH_SIZE + 6  # 3: the body's (mask's) s range and largest |t| abo
 OUT_VIEW_SIZE = SEARCH_SIZE + 9
 OUT_FRONT = 2 * OUT_VIEW_SIZE
 OUT_FRONT_STATUS = OUT_FRONT + reconstruction_kernels.OUT_SIZE
-OUT_SIZE = OUT_FRONT_STATUS + 1
+#: The plain frame's posture (see _finish): 1 if plain, then its centroid, direction, tips (head first),
+#: length, reprojection (NaN: none) and per view the 2D tips in the same order.
+OUT_POSTURE = OUT_FRONT_STATUS + 1
+P_PLAIN = 0
+P_CENTROID = 1
+P_DIRECTION = 4
+P_TIPS = 7
+P_LENGTH = 13
+P_REPROJECTION = 14
+P_VIEW_TIPS = 15
+POSTURE_SIZE = 23
+OUT_SIZE = OUT_POSTURE + POSTURE_SIZE
 
 
 @kernel
@@ -430,6 +450,144 @@ def lean_view(image, coarse, fy, fx, log_table, g, prev, po, qu, qv, sigma, p, n
     return True, weights, body, x0, y0
 
 
+# ------------------------------------------------------------------------------------- the plain frame
+@kernel
+def _robot_like(out, inp, centre, d, length):  # pragma: no cover - compiled
+    """plausibility.not_robot_like finding nothing, in its operations: the length over the mean width, and the
+    attenuation per mm of path in the view that sees the axis most side-on."""
+    widths = np.empty(2)
+    rays = np.empty((2, 4))
+    for view in range(2):
+        o = OUT_VIEW + view * OUT_VIEW_SIZE
+        r = roi_kernels.REFINED
+        ratio = out[o + r + 10] / out[o + r + 6]
+        width_px = 4.0 * math.sqrt(0.0625 if 0.0625 > ratio else ratio)  # noqa: FURB136 - Python's max(ratio, ...)
+        k = IN_SOURCES + 4 * view
+        rx, ry, rz = centre[0] - inp[k], centre[1] - inp[k + 1], centre[2] - inp[k + 2]
+        distance = math.sqrt(rx * rx + ry * ry + rz * rz)
+        rays[view, 0], rays[view, 1], rays[view, 2], rays[view, 3] = rx, ry, rz, distance
+        widths[view] = width_px * distance / inp[k + 3]
+    width = 0.5 * (widths[0] + widths[1])
+    if length > inp[IN_FINISH + 1] * width:
+        return False
+    side, side_sine = 0, -1.0
+    for view in range(2):
+        cosine = abs(rays[view, 0] * d[0] + rays[view, 1] * d[1] + rays[view, 2] * d[2]) / rays[view, 3]
+        c2 = 1.0 - cosine * cosine
+        sine = math.sqrt(c2 if c2 > 0.0 else 0.0)  # Python's max(0.0, c2)
+        if sine > side_sine:
+            side, side_sine = view, sine
+    o = OUT_VIEW + side * OUT_VIEW_SIZE
+    sine_floor = 1e-3 if 1e-3 > side_sine else side_sine  # noqa: FURB136 - Python's max(side_sine, 1e-3)
+    width_floor = 1e-6 if 1e-6 > widths[side] else widths[side]  # noqa: FURB136
+    mu = out[o + roi_kernels.REFINED + 4] * sine_floor / width_floor
+    return not mu < inp[IN_FINISH + 2]
+
+
+@kernel
+def _finish(out, inp, G):  # pragma: no cover - compiled
+    """The posture of a plain frame into ``out[OUT_POSTURE:]``, as reconstruction.reconstruct_from_front, the
+    tracker's checks and plausibility make it, where the frame is plain: the front found no ambiguity and gave
+    no reason, neither view's background under the body varies (clutter), no window reaches a detector
+    edge, the head is identified by the views' votes, the rod is robot-like and reprojects onto its images.
+    Anything else is left to Python (``P_PLAIN`` 0). (The checks that go through Python's ``math.degrees``
+    and ``math.hypot``, whose last bits numba's may not match, stay in Python.)"""
+    P = OUT_POSTURE
+    out[P + P_PLAIN] = 0.0
+    f = OUT_FRONT
+    R = reconstruction_kernels
+    if (out[OUT_FRONT_STATUS] != R.STATUS_OK or out[f + R.OUT_REASON] != R.REASON_NONE
+            or out[f + R.OUT_AMBIGUOUS] != 0.0):
+        return
+    heads = np.empty(2, dtype=np.int64)
+    plus = np.empty(2, dtype=np.int64)
+    for view in range(2):
+        o = OUT_VIEW + view * OUT_VIEW_SIZE
+        r = roi_kernels.REFINED
+        if out[o + r + 11] > inp[IN_FINISH]:
+            return  # cluttered: flagged, declutter and the doubt checks apply
+        x0, y0 = out[o + R_ROI], out[o + R_ROI + 1]
+        h, w = inp[IN_VIEW + view * IN_VIEW_SIZE + V_HEIGHT], inp[IN_VIEW + view * IN_VIEW_SIZE + V_WIDTH]
+        if x0 + out[o + r + 2] <= 0.0 or y0 + out[o + r] <= 0.0 or x0 + out[o + r + 3] >= w or y0 + out[o + r + 1] >= h:
+            return  # the window reaches a detector edge: cut_by_edge decides
+        heads[view] = int(out[o + roi_kernels.HEAD])
+        plus[view] = int(out[f + R.OUT_PLUS + view])
+    # The views' votes (how side-on, the head is the +d end), sorted as Python sorts the tuples, reversed.
+    n_votes = 0
+    sides = np.empty(2)
+    says = np.empty(2, dtype=np.bool_)
+    for view in range(2):
+        if heads[view] >= 0:
+            sides[n_votes] = out[f + R.OUT_SIDE + view]
+            says[n_votes] = heads[view] == plus[view]
+            n_votes += 1
+    if n_votes == 0:
+        return
+    if n_votes == 2 and (sides[1] > sides[0] or (sides[1] == sides[0] and says[1] and not says[0])):
+        sides[0], sides[1] = sides[1], sides[0]
+        says[0], says[1] = says[1], says[0]
+    if n_votes == 2 and says[0] != says[1]:
+        if sides[1] < inp[IN_FINISH + 4] * sides[0]:
+            n_votes = 1  # the foreshortened view's vote is the weaker evidence
+        else:
+            return  # the views disagree on the head: a reason
+    flipped = not says[0]
+    d = np.empty(3)
+    for i in range(3):
+        d[i] = -out[f + R.OUT_DIRECTION + i] if flipped else out[f + R.OUT_DIRECTION + i]
+    if flipped:
+        plus[0], plus[1] = 1 - plus[0], 1 - plus[1]
+    # Each view's tips with the head at its +d end (Features2D.with_head where the head moves).
+    n = 5
+    tips = np.empty((2, 2, 2))
+    same = True
+    for view in range(2):
+        o = OUT_VIEW + view * OUT_VIEW_SIZE
+        t = roi_kernels.TIPS
+        if heads[view] == plus[view]:
+            tips[view, 0, 0], tips[view, 0, 1] = out[o + t], out[o + t + 1]
+            tips[view, 1, 0], tips[view, 1, 1] = out[o + t + 2], out[o + t + 3]
+        else:
+            same = False
+            c0, c1 = out[o + roi_kernels.CENTROID], out[o + roi_kernels.CENTROID + 1]
+            a0, a1 = out[o + roi_kernels.AXIS], out[o + roi_kernels.AXIS + 1]
+            d0 = roi_kernels._tip_distance(out, o + roi_kernels.REACH, plus[view] == 0)
+            d1 = roi_kernels._tip_distance(out, o + roi_kernels.REACH + n, plus[view] == 1)
+            tips[view, 0, 0], tips[view, 0, 1] = c0 + a0 * d0, c1 + a1 * d0
+            tips[view, 1, 0], tips[view, 1, 1] = c0 - a0 * d1, c1 - a1 * d1
+    centre = out[f + R.OUT_CORRECTED:f + R.OUT_CORRECTED + 3]
+    placed = np.empty(R.TIPS_SIZE)
+    if same:
+        for i in range(R.TIPS_SIZE):
+            placed[i] = out[f + R.OUT_PLACED + i]
+        if flipped:  # the same ends in the other order
+            for i in range(3):
+                placed[R.TIPS_POINTS + i], placed[R.TIPS_POINTS + 3 + i] = (placed[R.TIPS_POINTS + 3 + i],
+                                                                            placed[R.TIPS_POINTS + i])
+    else:
+        fp, fq = OUT_VIEW, OUT_VIEW + OUT_VIEW_SIZE
+        c = roi_kernels.CENTROID
+        R._place(G, centre, d, tips[0], plus[0], tips[1], plus[1], out[fp + c:fp + c + 2], out[fq + c:fq + c + 2],
+                 placed, 0)
+    length, reprojection = placed[R.TIPS_LENGTH], placed[R.TIPS_REPROJECTION]
+    if math.isfinite(reprojection) and reprojection > inp[IN_FINISH + 3]:
+        return  # off its images: lost, with a reason
+    if not _robot_like(out, inp, centre, d, length):
+        return
+    for i in range(3):
+        out[P + P_CENTROID + i] = centre[i]
+        out[P + P_DIRECTION + i] = d[i]
+    for i in range(6):
+        out[P + P_TIPS + i] = placed[R.TIPS_POINTS + i]
+    out[P + P_LENGTH], out[P + P_REPROJECTION] = length, reprojection
+    for view in range(2):
+        k = P + P_VIEW_TIPS + 4 * view
+        first = 0 if plus[view] == 0 else 1
+        out[k], out[k + 1] = tips[view, first, 0], tips[view, first, 1]
+        out[k + 2], out[k + 3] = tips[view, 1 - first, 0], tips[view, 1 - first, 1]
+    out[P + P_PLAIN] = 1.0
+
+
 @kernel
 def search_pair(image_p, image_q, coarse_p, coarse_q, log_table, g, params, ring_outer, ring_inner, near_hw,
                 levels, search_settings, G, inp, prev, out):  # pragma: no cover - compiled
@@ -515,6 +673,7 @@ def search_pair(image_p, image_q, coarse_p, coarse_q, log_table, g, params, ring
         inp[IN_PREVIOUS], inp[IN_PREVIOUS + 1], inp[IN_PREVIOUS + 2], inp[IN_PREVIOUS + 3] != 0.0,
         inp[f], inp[f + 1], inp[f + 2], inp[f + 3], inp[f + 4], inp[f + 5], inp[f + 6], front)
     out[OUT_FRONT_STATUS] = status
+    _finish(out, inp, G)
     return PAIR_FOUND, w_p, m_p, w_q, m_q
 
 
@@ -542,6 +701,8 @@ def warm_up() -> None:
         v = IN_VIEW + view * IN_VIEW_SIZE
         inp[v + V_FY], inp[v + V_FX], inp[v + V_HEIGHT], inp[v + V_WIDTH] = 8.0, 8.0, h, w
     inp[IN_FRONT:IN_FRONT + FRONT_SETTINGS] = [3.0, 4.0, 12.0, 1.3, 0.001, 0.7, 0.25]
+    inp[IN_FINISH:IN_FINISH + FINISH_SETTINGS] = [0.15, 20.0, 0.25, 6.0, 0.5]
+    inp[IN_SOURCES:IN_SOURCES + 8] = [0.0, 0.0, -500.0, 400.0, 500.0, 0.0, 0.0, 400.0]
     frozen = image.copy()
     frozen.flags.writeable = False
     for frame in (image, frozen):

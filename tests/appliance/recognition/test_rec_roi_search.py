@@ -160,8 +160,9 @@ def test_tracker_reuses_a_views_noise_sigma_and_measures_it_again_periodically(
                  sigma_p, sigma_q, *rest):
         found = real_pair(self, image_p, image_q, bg_p, bg_q, centre, direction, half, outline_p, outline_q,
                           sigma_p, sigma_q, *rest)
-        assert found is not None
-        passed.extend([("p", sigma_p, found[0][0].sigma), ("q", sigma_q, found[0][1].sigma)])
+        assert found
+        used_p, used_q = self.sigmas()
+        passed.extend([("p", sigma_p, used_p), ("q", sigma_q, used_q)])
         return found
 
     monkeypatch.setattr(tracker_module, "find_in_roi", spy)
