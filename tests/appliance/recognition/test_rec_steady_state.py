@@ -217,3 +217,27 @@ def test_lean_pass_leaves_a_view_over_the_vessel_to_the_roi_search(views: dict[s
             if name in over:
                 assert not lean_view
         assert lean.ok == full.ok
+
+
+def test_a_compiled_axis_uncertainty_off_by_a_bit_sends_the_frame_to_python(views: dict[str, object],
+                                                                            calibration: Calibration) -> None:
+    # numba's hypot differs from Python's in the last bit for ~0.5 % of arguments: where the kernel's axis
+    # uncertainty (which its front used) is not Python's, the frame is neither plain nor finished from the
+    # kernel's front, and the features carry Python's value.
+    from appliance.recognition import steady_kernels as sk
+
+    spec = load_robots()[1]
+    body = RobotBody(spec.length_mm, spec.diameter_mm, spec.tip_angle_deg, spec.attenuation_per_mm)
+    renderer = BiplaneRenderer(views, body, settings=ImagingSettings(), seed=3)
+    tracker = PostureTracker(calibration, RecognitionSettings(dark_level=ImagingSettings().dark_level))
+    for n in range(2):
+        pair = renderer.render(RobotPose(np.array([-8.0, 6.0, -3.0 + 0.2 * n]), np.array([-0.7, 0.2, 0.68])))
+        tracker.process(pair.images["p"], pair.images["q"], frame=n, t=n / 30.0)
+    assert tracker.last_search == "roi"
+    steady = tracker._pair
+    assert steady.plain_posture(1, 1 / 30.0) is not None and steady.objects()[2] is not None
+    python_value = steady.objects()[1][1].axis_sigma_rad
+    steady.out[sk.OUT_VIEW_SIZE + sk.R_AXIS_SIGMA] = np.nextafter(python_value, np.inf)
+    assert steady.plain_posture(1, 1 / 30.0) is None
+    blobs, feats, status, _ = steady.objects()
+    assert status is None and feats[1].axis_sigma_rad == python_value
