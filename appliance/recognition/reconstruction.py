@@ -244,8 +244,8 @@ def reconstruct_from_front(calibration: Calibration, feat_p: Features2D, feat_q:
         tips = tips[::-1].copy() if flipped else tips.copy()
     else:
         placed = np.empty(kernels.TIPS_SIZE)
-        kernels.place_tips(calibration.packed, centroid, d, final["p"].tips, plus_index["p"], final["q"].tips, plus_index["q"],
-                           feat_p.centroid, feat_q.centroid, placed)
+        kernels.place_tips(calibration.packed, centroid, d, final["p"].tips, plus_index["p"], final["q"].tips,
+                           plus_index["q"], feat_p.centroid, feat_q.centroid, placed)
         tips = placed[kernels.TIPS_POINTS:kernels.TIPS_POINTS + 6].reshape(2, 3)
     length, reproj = placed[kernels.TIPS_LENGTH:kernels.TIPS_REPROJECTION + 1].tolist()
     reprojection = reproj if math.isfinite(reproj) else None

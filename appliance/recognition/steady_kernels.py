@@ -257,8 +257,8 @@ def lean_view(image, coarse, fy, fx, log_table, g, prev, po, qu, qv, sigma, p, n
     The last frame's body (``prev[po:]``, this module's view layout: its axis, extent about its centroid,
     contrast, pixel count, baseline) moved to ``qu, qv`` (its centroid moved by the predicted motion)
     gives a capsule; the attenuation and its 5x5 smoothing are computed on a capsule grown by
-    :data:`LEAN_GROW_ALONG_PX` and :data:`LEAN_GROW_ACROSS_PX` only (row by row). The body is what stands above the attenuation beside it
-    (:func:`.view_kernels._side_baseline`) by the refinement's level, inside the capsule; its support,
+    :data:`LEAN_GROW_ALONG_PX` and :data:`LEAN_GROW_ACROSS_PX` only (row by row). The body is what
+    stands above the attenuation beside it (:func:`.view_kernels._side_baseline`) by the refinement's level, inside the capsule; its support,
     the background interpolated under it (:func:`.view_kernels._fill_values`), the weights near it and
     the features follow as in the refinement and :func:`_features_tail`. The baseline (the ring median)
     is the last frame's. Returns ``(found, weights, mask, x0, y0)``; not found where a check fails (the

@@ -165,7 +165,8 @@ class SteadyPair:
                 "pixel_count": int(numbers[v + roi_kernels.REFINED + 12]), "eigenvalues": (numbers[e], numbers[e + 1]),
                 "head_index": 0})
         reprojection = numbers[P + sk.P_REPROJECTION]
-        return Posture(frame=frame, t=t, ok=True, ambiguous=False, centroid_mm=out[P + sk.P_CENTROID:P + sk.P_CENTROID + 3],
+        return Posture(frame=frame, t=t, ok=True, ambiguous=False,
+                       centroid_mm=out[P + sk.P_CENTROID:P + sk.P_CENTROID + 3],
                        direction=out[P + sk.P_DIRECTION:P + sk.P_DIRECTION + 3],
                        tips_mm=out[P + sk.P_TIPS:P + sk.P_TIPS + 6].reshape(2, 3), head_identified=True,
                        length_mm=numbers[P + sk.P_LENGTH],

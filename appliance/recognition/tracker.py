@@ -11,8 +11,9 @@ numbers, any other from the blobs and features as :func:`.roi_search.find_in_roi
 :func:`.reconstruction.reconstruct` give them, with the same result to the last bit. When the ROI
 search fails (nothing plausible, the blob reaches the ROI's edge, or it is far from the prediction),
 the frame falls back to a full-frame detection, where the background is re-estimated and candidate
-blobs of the two views are paired by the epipolar constraint. A frame where that fails too, or whose object is not robot-like
-(:mod:`.plausibility`), is reported lost (``ok: false`` with a reason), never with a made-up pose.
+blobs of the two views are paired by the epipolar constraint. A frame where that fails too, or whose
+object is not robot-like (:mod:`.plausibility`), is reported lost (``ok: false`` with a reason), never
+with a made-up pose.
 """
 from __future__ import annotations
 
