@@ -208,6 +208,7 @@ class BenchResult:
 
     def targets(self) -> dict[str, dict[str, Any]]:
         roi = self.stages["roi"]["recognition"]
+        sim_p99 = (self.simulation or {}).get("latency_write_us", {}).get("p99")
 
         def check(value: float | None, target: float, at_least: bool = False) -> dict[str, Any]:
             met = None if value is None else (value >= target if at_least else value <= target)
@@ -216,7 +217,10 @@ class BenchResult:
                 "roi_p99_us": check(roi["p99"], TARGET_ROI_P99_US),
                 "baseline_ratio": check(self.baseline_ratio, TARGET_BASELINE_RATIO, at_least=True),
                 "cold_floor_ratio": check(self.cold_floor_ratio, TARGET_FLOOR_RATIO),
-                "loop_p99_us": check(self.loop_us["p99"], TARGET_LOOP_P99_US)}
+                "loop_p99_us": check(self.loop_us["p99"], TARGET_LOOP_P99_US),
+                # The issue's loop target is for the closed loop in simulation; the in-process loop above is its
+                # lower bound (no world, no renderer, no tracker fake on the machine's two cores).
+                "sim_loop_p99_us": check(sim_p99, TARGET_LOOP_P99_US)}
 
     def to_json(self) -> dict[str, Any]:
         return {"config": self.config, "stages_us": self.stages, "baseline_us": self.baseline_us,
@@ -434,7 +438,7 @@ def run_simulation(seconds: float, image_size: tuple[int, int] | None = None,
     """The closed loop of ``config/sim.yaml`` (every device a loopback fake) for ``seconds`` of simulated time.
 
     Returns frame pairs per second of wall time (the harness steps the world and renders each pair too,
-    the renderer in its own process, so this is the whole simulated bench's rate, not the appliance's),
+    in the simulated lab's own process, so this is the whole simulated bench's rate, not the appliance's),
     the orchestrator's own per-step figures (waiting for the step's pair, recognition, control,
     allocation, amplifier round trip, and the step without the wait; us) and its measured latency from
     a pair on the host to the command written.
@@ -531,8 +535,8 @@ def format_table(result: BenchResult) -> str:
         ctl, wr = st.get("control_allocation", {}), st.get("amplifier_write", {})
         lines.append(f"  its control + allocation p50 {_f(ctl.get('p50'), '.0f')} p99 {_f(ctl.get('p99'), '.0f')} us, "
                      f"amplifier written p50 {_f(wr.get('p50'), '.0f')} p99 {_f(wr.get('p99'), '.0f')} us "
-                     f"(the amplifier and tracker fakes and the world share this process and its GIL with the loop; "
-                     f"the renderer runs in its own)")
+                     f"(the world, the amplifier and tracker fakes and the renderer run in the simulated lab's own "
+                     f"process; the grabbers' fake USB devices share this one)")
     t = result.tracking
     lines.append(f"tracking: {t['roi']} ROI frames, {t['fallback_full']} fell back to full frame, lost "
                  f"{t['lost_roi']} (steady) / {t['lost_full']} (cold) of {t['frames']}")

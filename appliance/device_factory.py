@@ -4,9 +4,12 @@ This is the one production module allowed to import ``drivers.loopback``. Real k
 (``drivers.transport.open_serial`` for the amplifier and the optical tracker, ``open_source`` for the
 X-ray grabbers). ``kind: loopback`` builds the fakes over REAL transports - the amplifier fake and the
 NDI tracker fake each on a pseudo-terminal (or a loopback TCP port), both X-ray planes rendered from
-the simulated world (by a renderer in a child process, as the fluoroscope is another device) and streamed through the fake pyusb backend into the real USB grabber driver (or
+the simulated world and streamed through the fake pyusb backend into the real USB grabber driver (or
 the in-process loopback grabber) - and the :class:`~appliance.sim_bench.SimBench` that ties them to one
-simulated world on one simulated clock. The appliance side (drivers, orchestrator) is the same in both cases.
+simulated world on one simulated clock. By default (``separate_lab``) the world, the amplifier and
+tracker fakes and the renderer run in one child process, as a bench's devices are other machines;
+otherwise in this process, the renderer alone in a child unless ``separate_renderer`` is False. The
+appliance side (drivers, orchestrator) is the same in every case.
 
 Clocks in simulation: the world, the fakes and the frame loop run on :class:`~appliance.sim_bench.SimClock`, which only the
 simulation harness advances. The host drivers keep the real monotonic clock for their link timeouts
@@ -125,20 +128,28 @@ def _connect_amplifier(url: str, device: AmplifierDevice, coils: Any) -> Amplifi
     return amplifier
 
 
-def _loopback_amplifier(device: AmplifierDevice, coils: Any, clock: SimClock) -> tuple[Any, Any]:
-    from drivers.loopback.amplifier_fake import FakeAmplifier, FakeAmplifierConfig
-    from drivers.loopback.serve import PtyServer, TcpServer
+def _amplifier_fake_config(device: AmplifierDevice, coils: Any) -> Any:
+    """The amplifier fake's ratings and coil physics for the configured coils."""
+    from drivers.loopback.amplifier_fake import FakeAmplifierConfig
 
     resistance = float(np.mean([c.resistance_ohm for c in coils.coils]))
     inductance = float(np.mean([c.inductance_h for c in coils.coils]))
     max_current = min(max(c.max_current_a for c in coils.coils), device.rated_current_a)
-    fake = FakeAmplifier(FakeAmplifierConfig(
+    return FakeAmplifierConfig(
         channels=len(coils.coils), rated_current_a=device.rated_current_a, max_current_a=max_current,
         slew_a_per_s=coils.limits.max_slew_a_per_s, watchdog_ms=device.watchdog_ms,
         coil_resistance_ohm=resistance, coil_inductance_h=max(inductance, 1e-6),
-        thermal_resistance_k_per_w=device.thermal_resistance_k_per_w))
-    server = TcpServer(fake, clock=clock) if device.link == "tcp" else PtyServer(fake, clock=clock)
-    return fake, server
+        thermal_resistance_k_per_w=device.thermal_resistance_k_per_w)
+
+
+def _served(fake: Any, link: str, clock: SimClock) -> Any:
+    from drivers.loopback.serve import PtyServer, TcpServer
+
+    return TcpServer(fake, clock=clock) if link == "tcp" else PtyServer(fake, clock=clock)
+
+
+def _server_url(server: Any, link: str) -> str:
+    return server.path if link == "pty" else server.address
 
 
 def _shutdown_in_real_time(bench_sim: SimBench, amplifier: Amplifier) -> None:
@@ -162,16 +173,22 @@ def _connect_ots(url: str, device: OtsDevice, rom: bytes | str, rom_name: str) -
 
 
 # -- the whole session --------------------------------------------------------------------------------
-def open_devices(session: Session, robot: RobotSpec, coils: Any, *, separate_renderer: bool = True) -> Devices:
+def open_devices(session: Session, robot: RobotSpec, coils: Any, *, separate_lab: bool = True,
+                 separate_renderer: bool = True) -> Devices:
     """Open (or, in simulation, build and open) every device of ``session``; the frame stream is started.
 
-    In simulation ``separate_renderer`` runs the X-ray renderer in a child process
-    (:mod:`drivers.loopback.render_process`; same images), False keeps it in this one."""
+    In simulation ``separate_lab`` puts the simulated lab - world, amplifier fake, tracker fake and the
+    X-ray renderer - in one child process (:mod:`drivers.loopback.lab_process`), as a bench's devices are
+    other machines; this process keeps what a bench's host has: the amplifier's and the tracker's ptys
+    and the grabbers' USB backend (the frames rendered in the child, through shared memory). The factory
+    starts the child and the devices' close ends it. False keeps the lab in this process (for tests and
+    comparisons), and then ``separate_renderer`` runs the X-ray renderer in a child process
+    (:mod:`drivers.loopback.render_process`; same images), False in this one."""
     config = session.config
     stack = contextlib.ExitStack()
     try:
         if config.is_simulation:
-            devices = _open_simulation(session, robot, coils, stack, separate_renderer)
+            devices = _open_simulation(session, robot, coils, stack, separate_lab, separate_renderer)
         else:
             devices = _open_bench(session, coils, stack)
     except BaseException:
@@ -220,14 +237,13 @@ def _robot_mapping(robot: RobotSpec) -> dict[str, float]:
 
 
 def _open_simulation(session: Session, robot: RobotSpec, coils: Any, stack: contextlib.ExitStack,
-                     separate_renderer: bool = True) -> Devices:
+                     separate_lab: bool = False, separate_renderer: bool = True) -> Devices:
     from drivers.loopback.loopback_grabber import LoopbackFrameSource, LoopbackScene, make_usb_backend
     from drivers.loopback.world import SimWorld
     from drivers.loopback.xray_render import (
         BiplaneRenderer,
         ImagingSettings,
         RobotBody,
-        RobotPose,
         VesselPhantom,
         biplane_views,
     )
@@ -249,21 +265,46 @@ def _open_simulation(session: Session, robot: RobotSpec, coils: Any, stack: cont
     true_views = turned_views(biplane_views(sod_mm=imaging.sod_mm, sdd_mm=imaging.sdd_mm, fov_mm=imaging.fov_mm,
                                             image_size=imaging.image_size, separation_deg=imaging.separation_deg,
                                             elevation_deg=imaging.elevation_deg), imaging.azimuth_deg)
-    fake, server = _loopback_amplifier(config.devices.amplifier, coils, clock)
-    stack.callback(server.close)
-    bench_sim = SimBench(clock, world, fake, server, None, true_views, sim.substep_ms / 1000.0)
-    stack.callback(bench_sim.close)
-
     body = RobotBody(robot.length_mm, robot.diameter_mm, robot.tip_angle_deg, robot.attenuation_per_mm)
     phantom = VesselPhantom(world.vessel.sample(1.0), world.vessel.radius_mm, imaging.vessel_attenuation_per_mm)
     detector = ImagingSettings(photons_per_pixel=imaging.photons_per_pixel)
     renderer: Any = BiplaneRenderer(true_views, body, vessel=phantom, seed=sim.seed, settings=detector)
-    if separate_renderer:
-        from drivers.loopback.render_process import RenderProcess
+    amp_device, ots_device = config.devices.amplifier, config.devices.ots
+    amp_config = _amplifier_fake_config(amp_device, coils)
+    lab: Any
+    if separate_lab:
+        from drivers.loopback.lab_process import LabProcess
 
-        # The fluoroscope is another device on a bench: its rendering must not take the loop's GIL.
-        renderer = RenderProcess(renderer)
-        stack.callback(renderer.close)
+        lab = LabProcess(clock=clock, world=world, amplifier_config=amp_config, amplifier_link=amp_device.link,
+                         renderer=renderer, substep_s=sim.substep_ms / 1000.0,
+                         ots={"link": ots_device.link, "seed": sim.seed} if ots_device.kind == "loopback" else None)
+        stack.callback(lab.close)
+        amp_url, ots_url = lab.amplifier_url, lab.ots_url
+    else:
+        from drivers.loopback.amplifier_fake import FakeAmplifier
+        from drivers.loopback.lab import LoopbackLab
+
+        if separate_renderer:
+            from drivers.loopback.render_process import RenderProcess
+
+            # The fluoroscope is another device on a bench: its rendering must not take the loop's GIL.
+            renderer = RenderProcess(renderer)
+            stack.callback(renderer.close)
+        fake = FakeAmplifier(amp_config)
+        server = _served(fake, amp_device.link, clock)
+        stack.callback(server.close)
+        # The servers are closed by the stack (each once: a pty's descriptors must not be closed twice).
+        lab = LoopbackLab(clock, world, fake, server, sim.substep_ms / 1000.0, renderer=renderer)
+        amp_url, ots_url = _server_url(server, amp_device.link), None
+        if ots_device.kind == "loopback":
+            from drivers.loopback.ots_fake import NdiTrackerFake, NoiseModel
+
+            ots_fake = NdiTrackerFake(lab.tool_poses, noise=NoiseModel(seed=sim.seed))
+            ots_server = _served(ots_fake, ots_device.link, clock)
+            stack.callback(ots_server.close)
+            lab.attach_tracker(ots_fake, ots_server)
+            ots_url = _server_url(ots_server, ots_device.link)
+    bench_sim = SimBench(clock, lab, true_views)
     if config.calibration.source == "nominal":
         p = config.calibration.perturbation
         calibration = perturbed_calibration(true_views, p.rotation_deg, p.translation_mm, p.seed,
@@ -272,15 +313,8 @@ def _open_simulation(session: Session, robot: RobotSpec, coils: Any, stack: cont
         assert config.calibration.file is not None
         calibration = Calibration.load(session.resolve(config.calibration.file))
 
-    history = bench_sim.history
-
-    def scene_pose(t_s: float) -> Any:
-        if not history.visible:
-            return None
-        centroid, direction = history.at(t_s)
-        return RobotPose(centroid, direction)
-
-    scene = LoopbackScene(renderer, scene_pose, rate_hz=imaging.fps, exposure_s=imaging.exposure_ms / 1000.0)
+    # The scene hands the exposure's time to the lab, which renders the robot as it was then.
+    scene = LoopbackScene(lab.exposures, float, rate_hz=imaging.fps, exposure_s=imaging.exposure_ms / 1000.0)
     bench_sim.scene = scene
     xray = config.devices.xray
     if xray.link == "usb":
@@ -300,28 +334,17 @@ def _open_simulation(session: Session, robot: RobotSpec, coils: Any, stack: cont
     frames = _stream(sources, config)
     stack.callback(frames.stop)
 
-    amp_url = server.path if config.devices.amplifier.link == "pty" else server.address
     with bench_sim.real_time():
-        amplifier = _connect_amplifier(amp_url, config.devices.amplifier, coils)
+        amplifier = _connect_amplifier(amp_url, amp_device, coils)
     # Shut down (ramp to zero, output off) before the servers close: the stack unwinds in reverse.
     stack.callback(_shutdown_in_real_time, bench_sim, amplifier)
     names = {"amplifier": f"loopback amplifier on {amp_url}", "xray_p": urls["p"], "xray_q": urls["q"]}
 
     ots = None
-    if config.devices.ots.kind == "loopback":
-        from drivers.loopback.ots_fake import NdiTrackerFake, NoiseModel, synthetic_rom
-        from drivers.loopback.serve import PtyServer, TcpServer
+    if ots_url is not None:
+        from drivers.loopback.ots_fake import synthetic_rom
 
-        def tool_pose(now: float) -> dict[int, Any]:
-            pose = world.tool_pose()
-            return {0: (pose.rotation, pose.position_mm)}
-
-        ots_fake = NdiTrackerFake(tool_pose, noise=NoiseModel(seed=sim.seed))
-        device = config.devices.ots
-        ots_server = TcpServer(ots_fake, clock=clock) if device.link == "tcp" else PtyServer(ots_fake, clock=clock)
-        bench_sim.ots_fake, bench_sim.ots_server = ots_fake, ots_server
-        ots_url = ots_server.path if device.link == "pty" else ots_server.address
-        ots = _connect_ots(ots_url, device, synthetic_rom("ROBOT-HOLDER"), "robot-holder (synthetic)")
+        ots = _connect_ots(ots_url, ots_device, synthetic_rom("ROBOT-HOLDER"), "robot-holder (synthetic)")
         stack.callback(ots.close)
         names["ots"] = f"loopback NDI tracker on {ots_url}"
     log.info("simulated bench: %s", ", ".join(f"{k}: {v}" for k, v in names.items()))

@@ -1,25 +1,27 @@
-"""The simulated side of a session: the simulated clock, the world's recent poses, and the bench of fakes.
+"""The simulated side of a session: the simulated clock and the bench of fakes.
 
 :class:`SimClock` is the time the world, the device fakes and (in simulation) the frame loop run on;
-only the harness advances it. :class:`SimBench` holds what the device factory built - the simulated
-world, the amplifier fake and its server, the X-ray scene and grabbers, the tracker fake - and steps
-the world with the amplifier fake's MEASURED currents, follows the wall clock on demand (device
-start-up and shutdown), and injects faults. Nothing here imports the fakes: the factory hands them in.
+only the harness advances it. :class:`SimBench` holds what the device factory built - the simulated lab
+(world, amplifier fake, tracker fake: in a child process by default, as a bench's devices are other
+machines), the X-ray scene and grabbers - steps the world with the amplifier fake's MEASURED currents,
+follows the wall clock on demand (device start-up and shutdown), and injects faults. Nothing here
+imports the fakes: the factory hands them in.
 """
 from __future__ import annotations
 
 import contextlib
-import itertools
+import logging
 import threading
 import time
-from collections import deque
 from collections.abc import Iterator
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from drivers.errors import DeviceError
 from drivers.frame_source import FrameSource
+
+log = logging.getLogger(__name__)
 
 
 class SimClock:
@@ -58,6 +60,15 @@ class SimClock:
             raise ValueError(f"simulated time only moves forward, got dt {dt_s}")
         with self._cond:
             self._t += dt_s
+            if not self._holds:
+                self._released = self._t
+                self._cond.notify_all()
+            return self._t
+
+    def advance_to(self, t_s: float) -> float:
+        """Move to ``t_s`` exactly (never backwards): the clock of a lab in another process ends its steps there."""
+        with self._cond:
+            self._t = max(self._t, float(t_s))
             if not self._holds:
                 self._released = self._t
                 self._cond.notify_all()
@@ -104,93 +115,68 @@ class _ReleasedClock:
         return self._clock.released_now()
 
 
-@dataclass
-class _Sample:
-    t_s: float
-    centroid_mm: np.ndarray
-    direction: np.ndarray
-
-
-class PoseHistory:
-    """The world's true pose over the last second, so a frame exposed at ``t`` shows the robot as it was then
-    (the harness runs the world ahead of the frame by the modelled loop latency)."""
-
-    def __init__(self, keep_s: float = 1.0) -> None:
-        self._samples: deque[_Sample] = deque()
-        self._keep_s = keep_s
-        self._lock = threading.Lock()
-        self.visible = True          # fault injection: False renders frames without the robot
-
-    def append(self, t_s: float, centroid_mm: np.ndarray, direction: np.ndarray) -> None:
-        with self._lock:
-            self._samples.append(_Sample(t_s, centroid_mm.copy(), direction.copy()))
-            while len(self._samples) > 2 and self._samples[1].t_s < t_s - self._keep_s:
-                self._samples.popleft()
-
-    def at(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
-        """(centroid, unit direction) at ``t_s``, interpolated; held at the ends of the history."""
-        with self._lock:
-            samples = list(self._samples)
-        if not samples:
-            raise RuntimeError("pose history is empty")
-        if t_s <= samples[0].t_s:
-            return samples[0].centroid_mm, samples[0].direction
-        for before, after in itertools.pairwise(samples):
-            if before.t_s <= t_s <= after.t_s:
-                span = after.t_s - before.t_s
-                w = 0.0 if span <= 0.0 else (t_s - before.t_s) / span
-                direction = (1.0 - w) * before.direction + w * after.direction
-                return ((1.0 - w) * before.centroid_mm + w * after.centroid_mm,
-                        direction / np.linalg.norm(direction))
-        return samples[-1].centroid_mm, samples[-1].direction
-
-
 class SimBench:
-    """The simulated side of a session: world, fakes, their servers, the clock, and fault injection."""
+    """The simulated side of a session: the lab (world and fakes), the clock, the X-ray scene, fault injection.
 
-    def __init__(self, clock: SimClock, world: Any, amplifier_fake: Any, amplifier_server: Any,
-                 scene: Any, true_views: dict[str, Any], substep_s: float) -> None:
+    ``lab`` is what the factory built: a ``LabProcess`` proxy to a ``LoopbackLab`` in a child process (the
+    default), or a ``LoopbackLab`` in this process; both have ``step``, ``pose``, ``measured_currents_a``,
+    ``current_trace``, the fault injections and the validation's hands. ``world`` and ``amplifier_fake``
+    are the lab's (proxies when it is in a child); ``history``, ``amplifier_server``, ``ots_fake`` and
+    ``ots_server`` exist only for a lab in this process (None otherwise)."""
+
+    def __init__(self, clock: SimClock, lab: Any, true_views: dict[str, Any]) -> None:
         self.clock = clock
-        self.world = world
-        self.amplifier_fake = amplifier_fake
-        self.amplifier_server = amplifier_server
-        self.scene = scene
+        self.lab = lab
         self.true_views = true_views
-        self.substep_s = substep_s
-        self.history = PoseHistory()
+        self.scene: Any = None
         self.grabber_devices: dict[str, Any] = {}
         self.frame_sources: dict[str, FrameSource] = {}
-        self.ots_fake: Any = None
-        self.ots_server: Any = None
-        #: (t, max |measured current|) after every world step: what the coils really carried.
-        self.current_trace: list[tuple[float, float]] = []
         self._step_lock = threading.Lock()
         self._frames_held = False
-        pose = world.pose
-        self.history.append(clock.now(), pose.centroid_mm, pose.direction)
+
+    # -- the lab -----------------------------------------------------------------------------------
+    @property
+    def world(self) -> Any:
+        return self.lab.world
+
+    @property
+    def amplifier_fake(self) -> Any:
+        return self.lab.amplifier_fake
+
+    @property
+    def amplifier_server(self) -> Any:
+        return getattr(self.lab, "amplifier_server", None)
+
+    @property
+    def ots_fake(self) -> Any:
+        return getattr(self.lab, "ots_fake", None)
+
+    @property
+    def ots_server(self) -> Any:
+        return getattr(self.lab, "ots_server", None)
+
+    @property
+    def history(self) -> Any:
+        return getattr(self.lab, "history", None)
+
+    @property
+    def current_trace(self) -> list[tuple[float, float]]:
+        """(t, max |measured current|) after every world step: what the coils really carried."""
+        return self.lab.current_trace
+
+    def pose(self) -> Any:
+        """The world's true pose now (``RobotState``)."""
+        return self.lab.pose()
 
     # -- time ------------------------------------------------------------------------------------
     def measured_currents_a(self) -> np.ndarray:
         """The amplifier fake's coil currents now (brought up to the simulated clock first)."""
-        with self.amplifier_server.lock:
-            self.amplifier_fake.tick(self.clock.now())
-            return self.amplifier_fake.measured_currents_a()
+        return self.lab.measured_currents_a()
 
     def step(self, dt_s: float) -> None:
         """Advance world and clock by ``dt_s``, in substeps each holding the amplifier's MEASURED currents."""
         with self._step_lock, self.clock.hold():
-            remaining = dt_s
-            while remaining > 1e-12:
-                h = min(self.substep_s, remaining)
-                currents = self.measured_currents_a()
-                self.world.step(h, currents)
-                t = self.clock.advance(h)
-                pose = self.world.pose
-                self.history.append(t, pose.centroid_mm, pose.direction)
-                self.current_trace.append((t, float(np.max(np.abs(currents)))))
-                remaining -= h
-            # The fake reflects the end of the step for whoever reads it next.
-            self.current_trace.append((self.clock.now(), float(np.max(np.abs(self.measured_currents_a())))))
+            self.lab.step(dt_s)
 
     def advance_to(self, t_s: float, *, release: bool = True) -> None:
         """Step the world to ``t_s``. ``release=False`` keeps the frames of the step from the grabbers until
@@ -212,14 +198,20 @@ class SimBench:
     @contextlib.contextmanager
     def real_time(self, period_s: float = 0.004) -> Iterator[None]:
         """While inside, a thread advances the world in step with the wall clock (used while devices start
-        and shut down: their handshakes wait in real time, and the coils must keep evolving meanwhile)."""
+        and shut down: their handshakes wait in real time, and the coils must keep evolving meanwhile).
+        If the lab drops out (its process ended) the thread logs it and stops; the devices' drivers see
+        their links lost."""
         stop = threading.Event()
 
         def run() -> None:
             last = time.monotonic()
             while not stop.wait(period_s):
                 now = time.monotonic()
-                self.step(now - last)
+                try:
+                    self.step(now - last)
+                except DeviceError as err:
+                    log.error("simulated bench: the world stopped following the wall clock: %s", err)
+                    return
                 last = now
 
         thread = threading.Thread(target=run, name="sim-real-time", daemon=True)
@@ -230,18 +222,46 @@ class SimBench:
             stop.set()
             thread.join(timeout=2.0)
 
+    # -- the validation's hands (appliance validate in simulation) -------------------------------------------
+    def pass_time(self, seconds: float) -> None:
+        """Let time pass without the world's dynamics (the robot clamped in its holder)."""
+        self.lab.pass_time(seconds)
+
+    def use_pointer(self) -> None:
+        """The tracker sees tool 1, the validation's pointer, from now on."""
+        self.lab.use_pointer()
+
+    def set_pointer(self, pose: Any) -> None:
+        """The pointer's pose provider (``pose(now) -> (R, t_mm)``, picklable), or None (put away)."""
+        self.lab.set_pointer(pose)
+
+    def place_robot(self, centroid_mm: Any, direction: Any) -> None:
+        """Clamp the robot at a new pose now (exposures from now on show it there)."""
+        self.lab.place_robot(centroid_mm, direction)
+
+    def replace_renderer(self, renderer: Any) -> None:
+        """X-ray exposures rendered by ``renderer`` (another phantom) until :meth:`restore_renderer`."""
+        self.lab.replace_renderer(renderer)
+
+    def restore_renderer(self) -> None:
+        self.lab.restore_renderer()
+
+    @property
+    def renderer_settings(self) -> Any:
+        """The simulated detector's settings (photons per pixel, dark level)."""
+        return self.lab.renderer_settings
+
     # -- fault injection -------------------------------------------------------------------------
     def cut_amplifier_link(self) -> None:
         """The amplifier's cable is pulled: no byte passes either way from now on."""
-        self.amplifier_server.unplugged.set()
+        self.lab.cut_amplifier_link()
 
     def press_estop(self) -> None:
-        with self.amplifier_server.lock:
-            self.amplifier_fake.press_estop()
+        self.lab.press_estop()
 
     def hide_robot(self, hidden: bool = True) -> None:
         """Frames show no robot (it left the field of view, or the images are unusable): tracking is lost."""
-        self.history.visible = not hidden
+        self.lab.hide_robot(hidden)
 
     def stop_grabbers(self) -> None:
         """The imaging chain goes silent (generator off, grabbers stop streaming) without any error."""
@@ -251,8 +271,3 @@ class SimBench:
         for source in self.frame_sources.values():
             if hasattr(source, "scene"):
                 source.scene.rate_hz = 1e-6   # loopback grabber: next frame in 11 days
-
-    def close(self) -> None:
-        for server in (self.ots_server, self.amplifier_server):
-            if server is not None:
-                server.close()

@@ -7,12 +7,16 @@ up to ``n / fps + loop_latency_ms`` and then runs one orchestrator step, which g
 the real transports (fake USB grabbers -> pyusb -> USB grabber driver -> biplane pairing), recognises
 the robot, and commands the amplifier over its pty. The grabbers see the frames of a world step only
 when the loop asks for its pair (as on a bench, where the loop is waiting when a pair comes in), so the
-measured latency from a pair on the host to the command written is the appliance's, not the harness's;
-the X-ray renderer runs in a child process (another device on a bench). The frames show the robot as it was at mid-exposure
-(the world keeps a short pose history), so the modelled latency between exposure and command acts on
-the loop as a real one would. Simulated time does not depend on how long the host takes: the run is
-faster than real time when a step takes less than ``1 / fps`` of wall time, slower otherwise
-(:attr:`SimResult.realtime_factor` says which).
+measured latency from a pair on the host to the command written is the appliance's, not the harness's.
+The simulated lab - world, amplifier fake, tracker fake and X-ray renderer - runs in one child process
+(other machines on a bench; ``separate_lab=False`` keeps it in this one): this process has only the
+amplifier's and the tracker's ptys and the grabbers' USB backend, and the harness steps the world and reads
+its truth through a proxy over a pipe. If that process ends, the loop stops (the stop reason names the lost
+lab, or the amplifier's driver finds its link gone, as with a real device that drops out) and the run's
+truth up to then is kept. The frames show the robot as it was at mid-exposure (the world keeps a short
+pose history), so the modelled latency between exposure and command acts on the loop as a real one would.
+Simulated time does not depend on how long the host takes: the run is faster than real time when a step
+takes less than ``1 / fps`` of wall time, slower otherwise (:attr:`SimResult.realtime_factor` says which).
 
 Device start-up and shutdown happen with the world following the wall clock (their handshakes and
 ramps wait in real time); after the loop has stopped the world runs ``settle_ms`` more of simulated
@@ -23,6 +27,7 @@ vanishing from the images (tracking loss), the grabbers going silent.
 """
 from __future__ import annotations
 
+import gc
 import logging
 import math
 import time
@@ -35,7 +40,7 @@ import numpy as np
 from appliance.compiled import warm_up_all
 from appliance.control import ActuationModel, CurrentAllocator, PathFollower, SafetySupervisor, load_coils, load_path
 from appliance.device_factory import Devices, open_devices
-from appliance.errors import ConfigError
+from appliance.errors import ConfigError, DeviceError
 from appliance.orchestrator import FrameReport, LoopListener, LoopSettings, Orchestrator, recognition_settings
 from appliance.recognition import PostureTracker
 from appliance.robots import load_robots, select_robot
@@ -143,7 +148,7 @@ class _ReleasingStream:
 class Simulation:
     """A whole simulated session: devices (fakes on real transports), appliance stack and harness."""
 
-    def __init__(self, session: Session, listeners: Iterable[LoopListener] = ()) -> None:
+    def __init__(self, session: Session, listeners: Iterable[LoopListener] = (), *, separate_lab: bool = True) -> None:
         config = session.config
         if not config.is_simulation:
             raise ConfigError(f"{session.source}: not a simulation session (devices must be kind: loopback); "
@@ -152,7 +157,7 @@ class Simulation:
         self.robot = select_robot(load_robots(session.robots_path), config.robot.id)
         self.coils = load_coils(session.coils_path)
         self.path = load_path(session.vessel_path)
-        self.devices: Devices = open_devices(session, self.robot, self.coils)
+        self.devices: Devices = open_devices(session, self.robot, self.coils, separate_lab=separate_lab)
         try:
             assert self.devices.sim is not None
             self.bench: SimBench = self.devices.sim
@@ -171,6 +176,7 @@ class Simulation:
             # cold compile (minutes on a loaded machine) the world's catch-up would outlast the start
             # and hold the amplifier fake's lock while the loop waits for its replies.
             warm_up_all()
+            _out_of_the_collectors_way()
         except BaseException:
             self.devices.close()
             raise
@@ -182,6 +188,7 @@ class Simulation:
         self.close()
 
     def close(self) -> None:
+        gc.unfreeze()
         self.devices.close()
 
     def inject(self, fault: str) -> None:
@@ -217,21 +224,34 @@ class Simulation:
 
         with bench.real_time():
             orchestrator.start()
+        _out_of_the_collectors_way()
         start = bench.clock.now()
         wall_start = time.perf_counter()
         frame = math.floor(start * fps) + 1
+        lab_lost: DeviceError | None = None
         try:
             while orchestrator.running and bench.clock.now() - start < seconds:
                 target = frame / fps + latency
-                while pending and start + pending[0][0] <= target:
-                    at, name = pending.pop(0)
-                    bench.advance_to(start + at, release=False)
-                    self.inject(name)
-                    fault_times[name] = bench.clock.now()
-                bench.advance_to(target, release=False)
+                try:
+                    while pending and start + pending[0][0] <= target:
+                        at, name = pending.pop(0)
+                        bench.advance_to(start + at, release=False)
+                        self.inject(name)
+                        fault_times[name] = bench.clock.now()
+                    bench.advance_to(target, release=False)
+                except DeviceError as err:
+                    # The simulated lab dropped out (its process ended): stop the loop as an operator would
+                    # when the bench's devices go; the amplifier's driver sees its link lost as well.
+                    lab_lost = err
+                    log.error("simulation: %s", err)
+                    orchestrator.request_stop(f"simulated lab lost: {err}")
                 self.frames.expect = frame
                 report = orchestrator.step()
-                pose = bench.world.pose
+                if lab_lost is not None:
+                    reports.append(report)
+                    stop_t = report.t_s if report.stopped else stop_t
+                    break
+                pose = bench.pose()
                 sample = TruthSample(bench.clock.now(), pose.centroid_mm,
                                      path_distance(self.follower.points, pose.centroid_mm))
                 truth.append(sample)
@@ -252,11 +272,24 @@ class Simulation:
             end = bench.clock.now()
             with bench.real_time():
                 safe = orchestrator.shutdown()
-            bench.step(config.simulation.settle_ms / 1000.0)
+            try:
+                bench.step(config.simulation.settle_ms / 1000.0)
+            except DeviceError as err:   # the lab dropped out: there is no world left to settle
+                log.error("simulation: the coils' decay after the stop was not simulated: %s", err)
         return SimResult(start_s=start, end_s=end, wall_s=wall, stop_reason=orchestrator.stop_reason,
                          reached_end_s=reached, truth=truth, tracked_mm=tracked, reports=reports,
                          current_trace=list(bench.current_trace), fault_times=fault_times, stop_t_s=stop_t,
                          shutdown_safe=safe, path_mm=self.follower.points.copy())
+
+
+def _out_of_the_collectors_way() -> None:
+    """Collect now and freeze what is left (``gc.freeze``): the devices, kernels and calibration live as long
+    as the session. Otherwise the cyclic collector's first full collection during the loop scans them all,
+    about once per 20 s run, inside a frame (57 ms measured in a recognition step at 768 x 672, load ~6);
+    later full collections scan only what the loop made. Called before the loop starts (the output is off,
+    or simulated time stands still); :meth:`Simulation.close` unfreezes."""
+    gc.collect()
+    gc.freeze()
 
 
 def percentile_ms(values: list[float], q: float) -> float:

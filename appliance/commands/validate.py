@@ -44,7 +44,9 @@ PIVOT_SWING_DEG = 25.0
 
 
 class SimulatedLab:
-    """The lab's hands in simulation: acts on the loopback world behind the devices (see the module docstring)."""
+    """The lab's hands in simulation: act on the loopback world behind the devices (see the module docstring),
+    through the simulation bench (the world and the tracker fake may be in the simulated lab's own process:
+    what is handed over is data, the pointer's motion included)."""
 
     name = "simulation (loopback world)"
 
@@ -52,7 +54,7 @@ class SimulatedLab:
         from scipy.spatial.transform import Rotation
 
         bench = devices.sim
-        if bench is None or bench.ots_fake is None:
+        if bench is None or devices.ots is None or not devices.names.get("ots", "").startswith("loopback"):
             raise ValueError("SimulatedLab needs a simulation session with a loopback tracker")
         self.bench = bench
         self.world = bench.world
@@ -60,65 +62,49 @@ class SimulatedLab:
         self.rng = np.random.default_rng([seed, robot.id])
         self.max_tilt_deg = max_tilt_deg
         self._rotation = Rotation
-        self._renderer = bench.scene.renderer
-        self._pointer: Any = None          # t -> (R, t) in tracker coordinates, or None when put away
+        self._vessel = self.world.vessel            # geometry only (a copy when the world is in another process)
         self._fiducials_world: np.ndarray | None = None
         ots_from_world = self.world.ots_from_world
         self._to_ots = lambda x: ots_from_world.apply(x)
         self._ots_rotation = ots_from_world.rotation
-        with bench.ots_server.lock:
-            bench.ots_fake.provider = self._tool_poses
-
-    # -- what the tracker sees -------------------------------------------------------------------------
-    def _tool_poses(self, now: float) -> dict[int, Any]:
-        holder = self.world.tool_pose()
-        poses: dict[int, Any] = {0: (holder.rotation, holder.position_mm)}
-        poses[1] = self._pointer(now) if self._pointer is not None else None
-        return poses
+        bench.use_pointer()          # the tracker sees the pointer as tool 1 (put away for now)
 
     def _hold_pointer(self, tip_ots: np.ndarray, rotation: np.ndarray) -> None:
-        translation = tip_ots - rotation @ POINTER_TIP_MM
-        self._pointer = lambda now: (rotation, translation)
+        from drivers.loopback.ots_poses import HeldPose
+
+        self.bench.set_pointer(HeldPose(rotation, tip_ots - rotation @ POINTER_TIP_MM))
 
     # -- Lab ---------------------------------------------------------------------------------------------
     def wait(self, seconds: float) -> None:
         # The robot is clamped in its holder: the world's dynamics do not act on it, only time passes.
-        self.bench.clock.advance(seconds)
+        self.bench.pass_time(seconds)
 
     def pointer_rom(self) -> tuple[bytes | str, str]:
         from drivers.loopback.ots_fake import synthetic_rom
         return synthetic_rom("POINTER"), "pointer (synthetic)"
 
     def start_pivoting(self) -> None:
-        pivot = self._to_ots(self.world.vessel.point_at(0.5 * self.world.vessel.length_mm) + [0.0, 0.0, -40.0])
-        base = self._ots_rotation
-        swing = math.radians(PIVOT_SWING_DEG)
-        start = self.bench.clock.now()
+        from drivers.loopback.ots_poses import PivotingPose
 
-        def pose(now: float) -> tuple[np.ndarray, np.ndarray]:
-            # Two incommensurate swings: the pointer cones about its tip in every direction.
-            phase = 2.0 * math.pi * (now - start)
-            turn = self._rotation.from_rotvec([swing * math.sin(0.9 * phase), swing * math.cos(0.55 * phase), 0.0])
-            rotation = base @ turn.as_matrix()
-            return rotation, pivot - rotation @ POINTER_TIP_MM
-
-        self._pointer = pose
+        pivot = self._to_ots(self._vessel.point_at(0.5 * self._vessel.length_mm) + [0.0, 0.0, -40.0])
+        self.bench.set_pointer(PivotingPose(pivot, self._ots_rotation, math.radians(PIVOT_SWING_DEG), POINTER_TIP_MM,
+                                            self.bench.clock.now()))
 
     def place_fiducials(self) -> int:
         from drivers.loopback.xray_render import BiplaneRenderer
 
-        centre = self.world.vessel.sample(1.0).mean(axis=0)
+        centre = self._vessel.sample(1.0).mean(axis=0)
         turn = self._rotation.from_euler("xyz", [12.0, -8.0, 25.0], degrees=True).as_matrix()
         self._fiducials_world = FIDUCIAL_LAYOUT_MM @ turn.T + centre
-        old = self._renderer
         # The fiducial phantom takes the vessel phantom's place on the table (bead detection wants a smooth
         # background, as with a calibration cube); the robot leaves the field of view first, as the
         # phantom's renderer draws no robot.
         self.bench.hide_robot(True)
-        self.bench.scene.renderer = BiplaneRenderer(
+        self.bench.replace_renderer(BiplaneRenderer(
             self.bench.true_views, None, vessel=None,
-            beads=(self._fiducials_world, BEAD_RADIUS_MM, BEAD_ATTENUATION_PER_MM), settings=old.settings, seed=1)
-        self._pointer = None
+            beads=(self._fiducials_world, BEAD_RADIUS_MM, BEAD_ATTENUATION_PER_MM),
+            settings=self.bench.renderer_settings, seed=1))
+        self.bench.set_pointer(None)
         return len(FIDUCIAL_LAYOUT_MM)
 
     def touch_fiducial(self, index: int) -> None:
@@ -127,13 +113,13 @@ class SimulatedLab:
         self._hold_pointer(self._to_ots(self._fiducials_world[index]), self._ots_rotation @ tilt)
 
     def clear_fiducials(self) -> None:
-        self.bench.scene.renderer = self._renderer
+        self.bench.restore_renderer()
         self.bench.hide_robot(False)
-        self._pointer = None
+        self.bench.set_pointer(None)
         self._fiducials_world = None
 
     def place_robot(self, posture: int, count: int) -> None:
-        vessel = self.world.vessel
+        vessel = self._vessel
         margin = min(self.robot.length_mm, 0.25 * vessel.length_mm)
         s = margin + (vessel.length_mm - 2.0 * margin) * (posture + 0.5) / count
         tangent = vessel.tangent_at(s)
@@ -142,16 +128,11 @@ class SimulatedLab:
         normal /= np.linalg.norm(normal)
         tilt = math.radians(self.rng.uniform(0.3, 1.0) * self.max_tilt_deg)
         direction = self._rotation.from_rotvec(normal * tilt).apply(tangent) * self.rng.choice([-1.0, 1.0])
-        t = self.bench.clock.now()
-        old = self.world.pose
         # Frames exposed before now show the old pose, frames after it the new one.
-        self.bench.history.append(t, old.centroid_mm, old.direction)
-        self.world.set_pose(vessel.point_at(s), direction)
-        new = self.world.pose
-        self.bench.history.append(t + 1e-9, new.centroid_mm, new.direction)
+        self.bench.place_robot(vessel.point_at(s), direction)
 
     def true_pose(self) -> tuple[np.ndarray, np.ndarray] | None:
-        pose = self.world.pose
+        pose = self.bench.pose()
         return pose.centroid_mm, pose.direction
 
 

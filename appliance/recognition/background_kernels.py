@@ -16,11 +16,18 @@ cheap and the per-pixel work that numpy would spread over dozens of calls is one
   subsample (the robust noise estimate), by radix selection instead of a sort, and not at all when a
   count shows it below the level that could matter to the caller;
 * :func:`coarse_components` - threshold, 8-connected components (unions of row runs) and, per
-  component, its area, bounding box, peak and the bounding box of its strong core.
+  component, its area, bounding box, peak and the bounding box of its strong core;
+* :func:`coarse_candidates` - the noise, the threshold, the components and the full-resolution
+  windows around the largest ones' cores: all of a coarse search in one call;
+* :func:`window_attenuation` - a detection window's attenuation and its noise sigma (the median of
+  neighbour differences, from a sampled bracket instead of a histogram of them all), what
+  :func:`~.segmentation.segment` would compute, handed to it.
 
 Kernels take plain arrays and scalars; :mod:`.background` and :mod:`.detection` keep the Python API.
 """
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -192,6 +199,138 @@ def _kth_smallest(bits: np.ndarray, k: int) -> np.uint32:  # pragma: no cover
 
 
 @kernel
+def _next_order_statistic(bits: np.ndarray, n: int, value: np.uint32, rank: int) -> np.uint32:  # pragma: no cover
+    """The ``rank + 1``-th smallest of ``bits[:n]`` given ``value``, its ``rank``-th: ``value`` again if it is
+    repeated that far, else the smallest pattern above it (branch-free, so that it vectorises)."""
+    at_most = 0
+    above = np.uint32(0xFFFFFFFF)
+    none = np.uint32(0xFFFFFFFF)
+    for i in range(n):
+        b = bits[i]
+        at_most += b <= value
+        above = min(above, b if b > value else none)
+    return value if at_most > rank + 1 else above
+
+
+#: Differences sampled to bracket the median (:func:`_median_pair`), and the bracket's half-width in
+#: sample ranks: the sample rank of the true median has a standard deviation of sqrt(256) / 2 = 8.
+_SAMPLE = 256
+_BRACKET = 24
+
+
+@kernel
+def _median_pair(bits: np.ndarray, n: int, k: int) -> tuple[np.uint32, np.uint32]:  # pragma: no cover
+    """The ``k``-th and ``k + 1``-th smallest (0-based) of ``bits[:n]`` (bit patterns of non-negative finite
+    float32 values, ordered like them), ``k + 1 < n``.
+
+    A sorted sample of every ``n / 256``-th value gives a bracket that holds both ranks with near
+    certainty (checked by counting, else the whole array is taken): one branch-free pass gathers the
+    ~20 % inside the bracket and counts those below it, and only those are selected (radix,
+    :func:`_kth_smallest`), instead of histogramming or partitioning them all."""
+    if n >= 4 * _SAMPLE:
+        stride = n // _SAMPLE
+        sample = np.empty(_SAMPLE, dtype=np.uint32)
+        for i in range(_SAMPLE):
+            sample[i] = bits[i * stride]
+        sample.sort()
+        j_lo = (k * _SAMPLE) // n - _BRACKET
+        j_hi = ((k + 1) * _SAMPLE) // n + _BRACKET
+        lo = sample[j_lo] if j_lo >= 0 else np.uint32(0)
+        hi = sample[j_hi] if j_hi < _SAMPLE else np.uint32(0xFFFFFFFF)
+        # The values inside the bracket gathered (branch-free) while those below it are counted.
+        inside = np.empty(n + 1, dtype=np.uint32)
+        below = 0
+        m = 0
+        for i in range(n):
+            b = bits[i]
+            inside[m] = b
+            below += b < lo
+            m += (b >= lo) & (b <= hi)
+        if below <= k and k + 1 < below + m:
+            lower = _kth_smallest(inside[:m], k - below)
+            return lower, _next_order_statistic(inside, m, lower, k - below)
+    lower = _kth_smallest(bits[:n], k)
+    return lower, _next_order_statistic(bits, n, lower, k)
+
+
+@kernel
+def _attenuation(image: np.ndarray, y0: int, y1: int, x0: int, x1: int, coarse: np.ndarray, fy: float, fx: float,
+                 log_table: np.ndarray) -> np.ndarray:  # pragma: no cover
+    """:func:`.view_kernels.attenuation_from_coarse`'s values (the same float32 operations on each pixel),
+    in two vectorisable passes a row: ``log B`` of the row from its coarse neighbours, then the
+    gray levels' logs subtracted, instead of both inside one loop that the compiler leaves scalar."""
+    hs, ws = coarse.shape
+    h, w = y1 - y0, x1 - x0
+    ix0 = np.empty(w, dtype=np.int64)
+    ix1 = np.empty(w, dtype=np.int64)
+    wx = np.empty(w, dtype=np.float32)
+    wx0 = np.empty(w, dtype=np.float32)
+    one = np.float32(1.0)
+    for x in range(w):
+        s = min(max((x + x0 + 0.5) / fx - 0.5, 0.0), ws - 1.0)
+        i = min(int(s), max(ws - 2, 0))
+        ix0[x] = i
+        ix1[x] = min(i + 1, ws - 1)
+        wx[x] = np.float32(s - i)
+        wx0[x] = one - wx[x]
+    out = np.empty((h, w), dtype=np.float32)
+    row = np.empty(ws, dtype=np.float32)
+    background = np.empty(w, dtype=np.float32)
+    lo, hi = ix0[0], ix1[w - 1] + 1 if w > 0 else 0
+    for y in range(h):
+        s = min(max((y + y0 + 0.5) / fy - 0.5, 0.0), hs - 1.0)
+        i = min(int(s), max(hs - 2, 0))
+        j = min(i + 1, hs - 1)
+        wy = np.float32(s - i)
+        wy0 = one - wy
+        for c in range(lo, hi):
+            row[c] = coarse[i, c] * wy0 + coarse[j, c] * wy
+        for x in range(w):
+            background[x] = row[ix0[x]] * wx0[x] + row[ix1[x]] * wx[x]
+        levels = image[y + y0, x0:x1]
+        o = out[y]
+        for x in range(w):
+            o[x] = background[x] - log_table[levels[x]]
+    return out
+
+
+@kernel
+def window_attenuation(image: np.ndarray, y0: int, y1: int, x0: int, x1: int, coarse: np.ndarray, fy: float,
+                       fx: float, log_table: np.ndarray) -> tuple[np.ndarray, float]:  # pragma: no cover
+    """A detection window's attenuation (:func:`_attenuation`, the values :func:`~.segmentation.segment`
+    would compute) and its robust noise sigma, ``1.4826 m / sqrt(2)`` with
+    ``m`` the median of the horizontal neighbours' absolute differences: the value segment's own
+    measurement gives (the same order statistics, :func:`_median_pair`), at a fraction of its cost.
+    The sigma is -1 where that measurement is not a plain median (a window narrower than 2 px,
+    or a non-finite attenuation): the caller then lets segment measure it."""
+    a = _attenuation(image, y0, y1, x0, x1, coarse, fy, fx, log_table)
+    h, w = a.shape
+    if w < 2 or h == 0:
+        return a, -1.0
+    n = h * (w - 1)
+    d = np.empty(n, dtype=np.float32)
+    for y in range(h):
+        row = a[y]
+        base = y * (w - 1)
+        for x in range(w - 1):
+            d[base + x] = abs(row[x + 1] - row[x])
+    bits = d.view(np.uint32)
+    largest = np.uint32(0)
+    for i in range(n):
+        largest = max(largest, bits[i])
+    if largest >= np.uint32(0x7F800000):
+        return a, -1.0
+    if n == 1:
+        return a, 1.4826 * float(d[0]) / math.sqrt(2.0)
+    upper_rank = n // 2
+    lower_rank = upper_rank - 1 if n % 2 == 0 else upper_rank
+    lower, upper = _median_pair(bits, n, lower_rank)
+    pair = np.array([lower, upper], dtype=np.uint32).view(np.float32)
+    med = pair[0] if n % 2 else (pair[0] + pair[1]) / np.float32(2.0)
+    return a, 1.4826 * float(med) / math.sqrt(2.0)
+
+
+@kernel
 def median_abs_step(a: np.ndarray, row_step: int, low: float) -> float:  # pragma: no cover
     """``max(low, m)`` with ``m`` the median of ``|a[y, x + 1] - a[y, x]|`` over every ``row_step``-th row
     as ``np.median`` gives it (the mean of the two middle values for an even count); NaN if there is
@@ -348,6 +487,60 @@ def coarse_components(a: np.ndarray, threshold: float, core_fraction: float,
     return stats, peaks
 
 
+#: Kinds of :func:`coarse_candidates`' rows: a window, or a core too long to be a robot whose part
+#: connected to its peak must be looked at (the component's bounding box is given instead).
+WINDOW, LONG_CORE = 0, 1
+
+
+@kernel
+def coarse_candidates(a: np.ndarray, row_step: int, quiet: float, detect_sigma: float, least: float, floor: float,
+                      core_fraction: float, max_components: int, fx: float, fy: float, max_extent_px: float,
+                      roi_margin_px: float, cone_reach: float, height: int, width: int
+                      ) -> tuple[np.ndarray, np.ndarray, float]:  # pragma: no cover
+    """:func:`~.detection.coarse_windows`' arithmetic in one call: the noise (:func:`median_abs_step` on
+    every ``row_step``-th row, ``quiet`` its floor), the threshold, the components
+    (:func:`coarse_components`), and for the ``max_components`` largest whose peak reaches ``floor``
+    (largest first, ties in label order) one row ``kind, x0, y0, x1, y1, label``: a ``WINDOW`` is the
+    full-resolution window around the core (its box grown by ``roi_margin_px + cone_reach x extent +
+    2 max(fx, fy)`` and clipped to ``height x width``, as :meth:`~.segmentation.Roi.around` does it;
+    too small a window gives no row); a ``LONG_CORE`` (longer than ``max_extent_px``) gives the
+    component's bounding box for the caller to cut. Returns the rows, the components' peaks and the
+    threshold, the same values as the Python steps they replace."""
+    sigma = 1.4826 * median_abs_step(a, row_step, quiet) / math.sqrt(2.0)
+    if not math.isfinite(sigma) or sigma <= 0:
+        sigma = 1e-3
+    threshold = max(detect_sigma * sigma, least)
+    stats, peaks = coarse_components(a, threshold, core_fraction, np.zeros((0, 0), dtype=np.int32))
+    order = np.argsort(-stats[1:, STAT_AREA], kind="mergesort")[:max_components] + 1
+    rows = np.zeros((order.shape[0], 6), dtype=np.int64)
+    k = 0
+    grow = 2.0 * max(fx, fy)
+    for label in order:
+        if float(peaks[label]) < floor:
+            continue
+        st = stats[label]
+        x0, y0, x1, y1 = st[STAT_CORE_X0], st[STAT_CORE_Y0], st[STAT_CORE_X1], st[STAT_CORE_Y1]
+        extent = max((x1 - x0) * fx, (y1 - y0) * fy)
+        if extent > max_extent_px:
+            rows[k, 0] = LONG_CORE
+            rows[k, 1], rows[k, 2], rows[k, 3], rows[k, 4] = st[STAT_X0], st[STAT_Y0], st[STAT_X1], st[STAT_Y1]
+            rows[k, 5] = label
+            k += 1
+            continue
+        margin = roi_margin_px + cone_reach * extent + grow
+        wx0 = max(0, math.floor(min(x0 * fx, x1 * fx) - margin))
+        wy0 = max(0, math.floor(min(y0 * fy, y1 * fy) - margin))
+        wx1 = min(width, math.ceil(max(x0 * fx, x1 * fx) + margin) + 1)
+        wy1 = min(height, math.ceil(max(y0 * fy, y1 * fy) + margin) + 1)
+        if wx1 - wx0 < 4 or wy1 - wy0 < 4:
+            continue
+        rows[k, 0] = WINDOW
+        rows[k, 1], rows[k, 2], rows[k, 3], rows[k, 4] = wx0, wy0, wx1, wy1
+        rows[k, 5] = label
+        k += 1
+    return rows[:k], peaks, threshold
+
+
 def warm_up() -> None:
     """Compile every kernel of this module on tiny inputs (see :mod:`appliance.compiled`)."""
     image = np.full((8, 8), 1000, dtype=np.uint16)
@@ -360,9 +553,12 @@ def warm_up() -> None:
         block_mean_log(frame, 4, table, small)
         block_mean_log_4(frame.view(np.uint64), table, small)
     median_abs_step(small, 2, 0.0)
+    for frame in (image, frozen):
+        window_attenuation(frame, 0, 4, 0, 4, small, 4.0, 4.0, table)
     upsample_attenuation(np.zeros((1, 1), dtype=np.float32), small, np.empty_like(small), np.empty_like(small))
     coarse_components(small, 0.5, 0.5, np.zeros((2, 2), dtype=np.int32))
     coarse_components(small, 0.5, 0.5, np.zeros((0, 0), dtype=np.int32))
+    coarse_candidates(small, 4, 0.01, 6.0, 0.1, 0.2, 0.5, 24, 4.0, 4.0, 420.0, 14.0, 0.7, 8, 8)
 
 
 register_warm_up(__name__)

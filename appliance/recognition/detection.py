@@ -17,13 +17,11 @@ from appliance.recognition.segmentation import (
     MAX_CANDIDATES,
     Blob,
     Roi,
+    _log_table,
     core_of,
     segment,
 )
 from appliance.recognition.settings import RecognitionSettings
-
-#: Passed to :func:`~.background_kernels.coarse_components` when the label image is not wanted.
-_NO_LABELS = np.zeros((0, 0), dtype=np.int32)
 
 
 def detect(image: np.ndarray, background: LogBackground, settings: RecognitionSettings | None = None) -> list[Blob]:
@@ -37,8 +35,20 @@ def detect(image: np.ndarray, background: LogBackground, settings: RecognitionSe
     """
     settings = settings or RecognitionSettings()
     blobs: list[Blob] = []
+    compiled = image.dtype in (np.uint16, np.uint8)
+    table = _log_table(float(settings.dark_level)) if compiled else None
     for roi in coarse_windows(background, settings):
-        for blob in segment(image, background, roi, settings):
+        a: np.ndarray | None = None
+        sigma: float | None = None
+        if compiled:
+            # The window's attenuation and its noise in one compiled call: the values segment would
+            # compute, without its second pass over the window for the noise.
+            a, sigma = background_kernels.window_attenuation(image, roi.y0, roi.y1, roi.x0, roi.x1,
+                                                             background.coarse, background.fy, background.fx,
+                                                             table)
+            if sigma < 0:
+                sigma = None
+        for blob in segment(image, background, roi, settings, sigma=sigma, region_attenuation=a):
             # Neighbouring coarse components may hold the same body.
             if all(math.hypot(blob.centroid_px[0] - b.centroid_px[0], blob.centroid_px[1] - b.centroid_px[1]) > 2.0
                    for b in blobs):
@@ -50,9 +60,9 @@ def detect(image: np.ndarray, background: LogBackground, settings: RecognitionSe
 def coarse_windows(background: LogBackground, settings: RecognitionSettings) -> list[Roi]:
     """The full-resolution windows around the coarse image's candidates, largest component first.
 
-    The threshold, the components, their peaks and the bounding boxes of their cores come from one
-    compiled kernel (:func:`~.background_kernels.coarse_components`); Python sees one row of
-    statistics per component.
+    The threshold, the components, their peaks, the bounding boxes of their cores and the windows
+    around them come from one compiled kernel (:func:`~.background_kernels.coarse_candidates`); Python
+    sees one row per window, and cuts the rare core too long to be a robot.
     """
     # (float32 C-contiguous, the kernels' compiled signature, whoever built the background.)
     a = np.ascontiguousarray(background.coarse_attenuation, dtype=np.float32)
@@ -66,34 +76,30 @@ def coarse_windows(background: LogBackground, settings: RecognitionSettings) -> 
     # `least` whatever the median is, and the kernel skips the selection (at the simulated dose the
     # noise term is ~0.43 of it).
     quiet = 0.999 * least / settings.detect_sigma * math.sqrt(2.0) / 1.4826
-    sigma = 1.4826 * background_kernels.median_abs_step(a, 4, quiet) / math.sqrt(2.0)
-    if not np.isfinite(sigma) or sigma <= 0:
-        sigma = 1e-3
-    threshold = max(settings.detect_sigma * sigma, least)
-    stats, peaks = background_kernels.coarse_components(a, threshold, settings.core_fraction, _NO_LABELS)
-    labels: np.ndarray | None = None
-    order = np.argsort(-stats[1:, background_kernels.STAT_AREA], kind="stable")[:MAX_CANDIDATES * 3] + 1
     fx, fy = background.fx, background.fy
+    height, width = background.shape
+    # Room for the faint cone beyond the core, the ring and the background fill around the body: the
+    # core's box grown by roi_margin_px + cone_reach x its extent + two coarse pixels.
+    rows, peaks, threshold = background_kernels.coarse_candidates(
+        a, 4, quiet, settings.detect_sigma, least, floor, settings.core_fraction, MAX_CANDIDATES * 3, fx, fy,
+        float(settings.max_extent_px), float(settings.roi_margin_px), settings.cone_reach, height, width)
+    labels: np.ndarray | None = None
     windows: list[Roi] = []
-    for label in order.tolist():
-        peak = float(peaks[label])
-        if peak < floor:
+    for kind, x0, y0, x1, y1, label in rows.tolist():
+        if kind == background_kernels.WINDOW:
+            windows.append(Roi(x0, y0, x1, y1))
             continue
-        x0, y0, x1, y1 = (int(v) for v in stats[label, background_kernels.STAT_CORE_X0:background_kernels.STAT_CORE_Y1 + 1])
+        # A long core may be a vessel with the robot on it: keep only the part connected to the peak.
+        bx0, by0, bx1, by1 = x0, y0, x1, y1
+        if labels is None:   # the label image, only for this (rare) case: the components again
+            labels = np.zeros(a.shape, dtype=np.int32)
+            background_kernels.coarse_components(a, threshold, settings.core_fraction, labels)
+        comp = labels[by0:by1, bx0:bx1] == label
+        ys, xs = np.nonzero(core_of(a[by0:by1, bx0:bx1], comp, float(peaks[label]), settings.core_fraction))
+        x0, y0, x1, y1 = bx0 + int(xs.min()), by0 + int(ys.min()), bx0 + int(xs.max()) + 1, by0 + int(ys.max()) + 1
         extent = max((x1 - x0) * fx, (y1 - y0) * fy)
         if extent > settings.max_extent_px:
-            # A long core may be a vessel with the robot on it: keep only the part connected to the peak.
-            bx0, by0, bx1, by1 = (int(v) for v in stats[label, background_kernels.STAT_X0:background_kernels.STAT_Y1 + 1])
-            if labels is None:   # the label image, only for this (rare) case: the same kernel again
-                labels = np.zeros(a.shape, dtype=np.int32)
-                background_kernels.coarse_components(a, threshold, settings.core_fraction, labels)
-            comp = labels[by0:by1, bx0:bx1] == label
-            ys, xs = np.nonzero(core_of(a[by0:by1, bx0:bx1], comp, peak, settings.core_fraction))
-            x0, y0, x1, y1 = bx0 + int(xs.min()), by0 + int(ys.min()), bx0 + int(xs.max()) + 1, by0 + int(ys.max()) + 1
-            extent = max((x1 - x0) * fx, (y1 - y0) * fy)
-            if extent > settings.max_extent_px:
-                continue
-        # Room for the faint cone beyond the core, the ring and the background fill around the body.
+            continue
         margin = settings.roi_margin_px + settings.cone_reach * extent + 2.0 * max(fx, fy)
         roi = Roi.around(np.array([[x0 * fx, y0 * fy], [x1 * fx, y1 * fy]]), margin, background.shape)
         if roi is not None:

@@ -9,6 +9,8 @@ Two estimators:
 * :func:`weighted_features` uses attenuation-weighted moments: with weights proportional to the path
   length through the body, the weighted centroid is the projection of the body's volume centroid (a
   binary silhouette's is not, for a cone-tipped body), and the axis is the symmetry line of the image.
+  The weights lose a cone's faint tip (the segmentation keeps contrast above a fifth of the peak); the
+  centroid counts it from the end's own profile (:func:`.view_kernels.missing_cone_shift`).
   The tips come from the axial profile (the weights summed across the axis, proportional to the body's
   cross-section area): a flat end is a blurred step, located at its half-height; a conical end's
   profile falls as the square of the distance to the apex, so ``sqrt(profile)`` is a straight line whose
@@ -193,7 +195,9 @@ def weighted_features(blob: Blob, settings: RecognitionSettings | None = None) -
     as much as its thick middle, which keeps short, cone-heavy bodies (whose mass sits in a round
     lump) from having an ill-defined principal axis. The numbers come from one kernel
     (:func:`.view_kernels.weighted_view_features`); the head is the end whose ramp (profile from 0.8
-    down to 0.2 of the plateau) is clearly longer.
+    down to 0.2 of the plateau) is clearly longer. The centroid includes the cone tip the weights lost
+    beyond their end (:func:`.view_kernels.missing_cone_shift`: ~0.2 px along the axis on robot 6), and
+    the reaches are measured from it; the moments and the axis are the weights' own.
     """
     settings = settings or RecognitionSettings()
     cap = settings.axis_saturation * blob.peak if settings.axis_saturation < 1.0 else math.inf

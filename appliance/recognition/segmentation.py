@@ -39,11 +39,16 @@ log = logging.getLogger(__name__)
 #: Noise reduction of the 5x5, sigma=1 Gaussian used for candidate detection (sqrt of the kernel's sum of squares).
 _SMOOTH_NOISE_GAIN = 0.29
 MAX_CANDIDATES = 8
-#: Rows beyond the body and neighbouring columns averaged for the background fill across the body.
+#: Rows beyond the body and neighbouring columns averaged for the background fill across the body
+#: (the columns only along image columns or rows, see ``RecognitionSettings.background_along_structure``).
 _FILL_ROWS = 3
 _FILL_COLS = 7
 #: Slices (px) over which a body's attenuation must fall beyond its core's end.
 _FADE_STEP = 4
+#: How much more background (smoothed-noise sigmas, on average under the body) oblique lines must find
+#: at both of their ends than lines across the axis before the background is interpolated along them
+#: (:func:`.view_kernels.background_shear`).
+_DIRECTION_MARGIN = 3.0
 
 
 @dataclass(frozen=True)
@@ -111,8 +116,9 @@ class Blob:
     centroid_px: tuple[float, float]  # weighted centroid in image pixels (for candidate pairing)
     touches_border: bool  # the support reaches the edge of the searched region: the robot may be cut
     width_px: float = 0.0  # the body's diameter from its weighted spread across the axis (4 sqrt(l2))
-    #: How much the interpolated background under the body varies, as a fraction of the body's peak:
-    #: near 0 on a clean background, large where the robot overlaps a vessel or another object.
+    #: How much the interpolated background under the body varies, as a fraction of the body's peak
+    #: (with ``background_along_structure``, also the attenuation read beside the body and beyond its
+    #: flat ends): near 0 on a clean background, large where the robot overlaps a vessel or another object.
     clutter: float = 0.0
 
 
@@ -195,7 +201,8 @@ def _refine_parameters(settings: RecognitionSettings) -> tuple[np.ndarray, np.nd
     params = np.array([settings.min_peak_attenuation, settings.core_fraction, settings.min_pixels,
                        settings.max_extent_px, settings.max_elongation, settings.cone_reach,
                        settings.support_dilate_px, settings.support_sigma, settings.support_fraction,
-                       _SMOOTH_NOISE_GAIN, _FILL_ROWS, _FILL_COLS, _FADE_STEP], dtype=np.float64)
+                       _SMOOTH_NOISE_GAIN, _FILL_ROWS, _FILL_COLS, _FADE_STEP,
+                       1.0 if settings.background_along_structure else 0.0, _DIRECTION_MARGIN], dtype=np.float64)
     gap = settings.support_dilate_px + 1
     value = (params, _disk_spans(gap + settings.ring_px), _disk_spans(gap), _disk_spans(settings.support_dilate_px))
     if len(_PARAMETERS) > 16:
@@ -224,10 +231,17 @@ def _blob_from_component(a: np.ndarray, smooth: np.ndarray, labels: np.ndarray, 
     beyond either end of the core, its contrast stops fading or it gets wider than along the core
     (what continues at a steady level is something else, such as a vessel the robot touches). The
     median of a ring around the core is the blob's single ``baseline`` (its ``peak`` is above it). The
-    background under the body is then interpolated across the axis, from the pixels just outside
-    either long side of a rectangle around the body: exact for a vessel crossing the robot, and only
-    slightly low for a vessel the robot lies in. The weights are the attenuation above that
-    background near the body. The arithmetic is :func:`.view_kernels.refine`.
+    background under the body is then interpolated across it, along image columns or rows, from the
+    pixels just outside a rectangle around the body: exact for a vessel crossing the robot at right
+    angles, a wedge smeared along the body for one crossing it obliquely, and low for a vessel the robot
+    lies in. With ``settings.background_along_structure`` it is interpolated along lines across a strip
+    around the body instead, from the pixels just outside its two long sides: across the axis, or
+    along a vessel that crosses the body obliquely (where lines that way find more attenuation at both
+    of their ends, and the sides match along them): exact for a straight vessel crossing the robot at
+    any angle, still low for one the robot lies in (the sides see its edges only) or one that ends
+    under it; the blob's ``clutter`` then also counts what the strip's sides and the body's flat ends
+    see, so such frames are flagged. The weights are the attenuation above that background near the
+    body. The arithmetic is :func:`.view_kernels.refine`.
     """
     params, ring_outer, ring_inner, near = _refine_parameters(settings)
     x, y, bw, bh = box
@@ -243,7 +257,8 @@ def _blob_from_component(a: np.ndarray, smooth: np.ndarray, labels: np.ndarray, 
 
 
 def segment(image: np.ndarray, log_bg: np.ndarray | LogBackground, roi: Roi | None = None,
-            settings: RecognitionSettings | None = None, *, sigma: float | None = None) -> list[Blob]:
+            settings: RecognitionSettings | None = None, *, sigma: float | None = None,
+            region_attenuation: np.ndarray | None = None) -> list[Blob]:
     """Robot candidates in ``roi`` (whole image if None), strongest first; empty if none is plausible.
 
     ``log_bg`` is :func:`log_background` of a recent frame of the same view (or a full-frame float32
@@ -253,10 +268,13 @@ def segment(image: np.ndarray, log_bg: np.ndarray | LogBackground, roi: Roi | No
     ``sigma`` is the attenuation image's noise standard deviation if already known (None: measured
     on the region, :func:`noise_sigma`, ~15 us). The tracker passes the one a recent frame of the same
     view measured: the detector and the dose, hence the noise, do not change from frame to frame.
+    ``region_attenuation`` is :func:`attenuation` of the region if the caller has it already (a
+    full-frame detection takes it with the window's noise in one compiled call).
     """
     settings = settings or RecognitionSettings()
     region = roi or Roi.full(image.shape)
-    a = attenuation(image, log_bg, region, settings.dark_level)
+    a = (attenuation(image, log_bg, region, settings.dark_level) if region_attenuation is None
+         else region_attenuation)
     # Noise sigma, the 5x5 sigma=1 Gaussian, components above the threshold, largest first.
     known = float(sigma) if sigma is not None and math.isfinite(sigma) and sigma > 0 else 0.0
     sigma, smooth, labels, stats, order = view_kernels.candidates(

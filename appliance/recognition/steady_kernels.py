@@ -692,7 +692,7 @@ def warm_up() -> None:
     table = np.log(np.maximum(np.arange(65536, dtype=np.float32), np.float32(1.0)))
     coarse = np.full((4, 5), np.float32(math.log(20000.0)), dtype=np.float32)
     disk = np.array([1, 2, 2, 2, 1], dtype=np.int64)
-    params = np.array([0.25, 0.5, 8, 420, 40.0, 0.7, 2, 3.0, 0.2, 0.29, 3, 7, 4], dtype=np.float64)
+    params = np.array([0.25, 0.5, 8, 420, 40.0, 0.7, 2, 3.0, 0.2, 0.29, 3, 7, 4, 1, 3.0], dtype=np.float64)
     levels = np.array([0.2, 0.25, 0.5, 0.64, 0.8])
     settings = np.array([6.0, 0.29, 0.125, 8, 24, 8, 40.0, 1.0, 1.6, 1.0])
     inp = np.zeros(IN_SIZE)

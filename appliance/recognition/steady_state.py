@@ -89,6 +89,8 @@ class SteadyPair:
         centroid was ``last_centre``) to try the lean pass from (prototype; a view whose noise sigma is
         measured this frame takes the full search), or None.
         """
+        if self.settings.background_along_structure:
+            lean_from = None  # the lean pass interpolates the background along image columns or rows only
         # Every per-frame number in the order of steady_kernels' layout, written in one assignment.
         numbers = [*centre, *direction, half, *last_centre, *(previous or _NO_DIRECTION), float(previous is not None)]
         for image, bg, outline, sigma in ((image_p, bg_p, outline_p, sigma_p), (image_q, bg_q, outline_q, sigma_q)):

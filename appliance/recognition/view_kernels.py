@@ -655,6 +655,221 @@ def _fill_values(smooth, wy0, wx0, hh, ww, support, sy0, sy1, sx0, sx1, fill_row
                 out[r, c] = value
 
 
+# The background under the body, along the structure it lies on. ``s`` runs along the axis from the
+# core's centroid ``ox, oy`` (unit ``ax, ay``), ``t`` across it; the body's support lies inside the
+# strip ``|t| <= half_t``, and the background is read on the strip's two sides, beyond ``half_t``.
+@kernel
+def _smooth_at(smooth, wy0, wx0, hh, ww, s_, t_, ox, oy, ax, ay):  # pragma: no cover - compiled
+    """The smoothed image at body-frame point ``(s_, t_)``, bilinear, clamped to the window."""
+    x = min(max(s_ * ax - t_ * ay + ox - wx0, 0.0), ww - 1.0)
+    y = min(max(s_ * ay + t_ * ax + oy - wy0, 0.0), hh - 1.0)
+    ix, iy = min(int(x), max(ww - 2, 0)), min(int(y), max(hh - 2, 0))
+    fx, fy = x - ix, y - iy
+    jx, jy = min(ix + 1, ww - 1), min(iy + 1, hh - 1)
+    r0 = float(smooth[wy0 + iy, wx0 + ix]) * (1.0 - fx) + float(smooth[wy0 + iy, wx0 + jx]) * fx
+    r1 = float(smooth[wy0 + jy, wx0 + ix]) * (1.0 - fx) + float(smooth[wy0 + jy, wx0 + jx]) * fx
+    return r0 * (1.0 - fy) + r1 * fy
+
+
+@kernel
+def _at(profile, s_lo, s_):  # pragma: no cover - compiled
+    """``profile`` (samples 1 px apart from ``s_lo``) at ``s_``, linear, clamped to its ends."""
+    f = min(max(s_ - s_lo, 0.0), profile.size - 1.000001)
+    i = int(f)
+    w = f - i
+    return profile[i] * (1.0 - w) + profile[i + 1] * w
+
+
+#: Directions tried for the background's lines: across the axis, then 15-degree steps either side
+#: (up to ``_MAX_SHEAR``, 75 degrees off it), refined by halving steps around the best (to
+#: within a degree: a vessel's edge then lies within ~0.5 px of where it is across a 30 px strip).
+_DIRECTION_STEP = math.radians(15.0)
+_DIRECTION_STEPS = 5
+_REFINE_STEPS = 4
+#: Spacing (px along the axis) of the lines whose ends score a direction: the vessels are 4-5 times wider.
+_SCORE_SPACING = 4.0
+
+
+@kernel
+def _shear_score(left, right, s_lo, s0, s1, reach, kappa):  # pragma: no cover - compiled
+    """How much background the two sides agree on along lines of shear ``kappa`` (``ds/dt``): the mean,
+    over lines crossing the axis every ``_SCORE_SPACING`` px along the body, of the lower of the two
+    sides' values where the line meets them (``reach`` from the axis)."""
+    acc, n = 0.0, 0
+    s_ = s0
+    while s_ <= s1:
+        acc += min(_at(left, s_lo, s_ - reach * kappa), _at(right, s_lo, s_ + reach * kappa))
+        n += 1
+        s_ += _SCORE_SPACING
+    return acc / max(n, 1)
+
+
+@kernel
+def _side_mismatch(left, right, s_lo, s0, s1, reach, kappa):  # pragma: no cover - compiled
+    """How much the two sides differ along lines of shear ``kappa``: the mean, over the lines of
+    :func:`_shear_score`, of the absolute difference of the two sides' values where the line meets them."""
+    acc, n = 0.0, 0
+    s_ = s0
+    while s_ <= s1:
+        acc += abs(_at(left, s_lo, s_ - reach * kappa) - _at(right, s_lo, s_ + reach * kappa))
+        n += 1
+        s_ += _SCORE_SPACING
+    return acc / max(n, 1)
+
+
+#: Oblique lines are taken only where the two sides match along them this much better than across.
+_MATCH_FRACTION = 0.5
+
+
+@kernel
+def background_shear(left, right, s_lo, s0, s1, reach, max_shear, margin):  # pragma: no cover - compiled
+    """The shear ``ds/dt`` of the lines along which the background under the body is interpolated: 0
+    (across the axis) unless lines in another direction find more background at both of their ends,
+    by ``margin`` on average over the body, and the two sides match along them (mean absolute
+    difference under ``_MATCH_FRACTION`` of the one across): the direction of a straight vessel the
+    robot crosses obliquely (then both ends of the lines along it lie in the vessel, and of lines
+    across it only one, and one side's profile is the other's shifted). A vessel that curls around
+    the body (lying beside it on both sides, not under it) can put both ends of some oblique lines in
+    it, but the sides do not match along them. ``left``/``right`` sample the two sides 1 px apart from
+    ``s_lo``; ``reach`` is their distance from the axis; shears beyond ``max_shear`` are not tried."""
+    across = _shear_score(left, right, s_lo, s0, s1, reach, 0.0)
+    best_angle, best = 0.0, across
+    for k in range(1, _DIRECTION_STEPS + 1):
+        for sign in (-1.0, 1.0):
+            angle = sign * k * _DIRECTION_STEP
+            kappa = math.tan(angle)
+            if abs(kappa) > max_shear:
+                continue
+            score = _shear_score(left, right, s_lo, s0, s1, reach, kappa)
+            if score > best:
+                best_angle, best = angle, score
+    delta = 0.5 * _DIRECTION_STEP
+    for _ in range(_REFINE_STEPS):
+        centre = best_angle
+        for angle in (centre - delta, centre + delta):
+            kappa = math.tan(angle)
+            if abs(kappa) > max_shear:
+                continue
+            score = _shear_score(left, right, s_lo, s0, s1, reach, kappa)
+            if score > best:
+                best_angle, best = angle, score
+        delta *= 0.5
+    if not best > across + margin:
+        return 0.0
+    kappa = math.tan(best_angle)
+    if not (_side_mismatch(left, right, s_lo, s0, s1, reach, kappa)
+            < _MATCH_FRACTION * _side_mismatch(left, right, s_lo, s0, s1, reach, 0.0)):
+        return 0.0
+    return kappa
+
+
+#: The steepest lines (degrees off the across-axis direction) the background is interpolated along.
+_MAX_SHEAR = math.tan(math.radians(75.0))
+
+
+@kernel
+def _end_profile(smooth, wy0, wx0, hh, ww, ox, oy, ax, ay, s_end, sign, half_t, depth):  # pragma: no cover
+    """The attenuation just beyond one end of the support (``s = s_end``, outward along ``sign``): per
+    1 px across the strip from ``t = -half_t``, the mean of the smoothed image at 1..``depth`` px beyond."""
+    nt = int(math.floor(2.0 * half_t)) + 2
+    out = np.empty(nt)
+    for i in range(nt):
+        t_ = -half_t + i
+        acc = 0.0
+        for d in range(1, depth + 1):
+            acc += _smooth_at(smooth, wy0, wx0, hh, ww, s_end + sign * d, t_, ox, oy, ax, ay)
+        out[i] = acc / depth
+    return out
+
+
+@kernel
+def _fill_across(smooth, wy0, wx0, hh, ww, ox, oy, ax, ay, s0, s1, half_t, depth, margin, open_lo, open_hi,
+                 ys, xs, n, out):  # pragma: no cover - compiled
+    """The background at the ``n`` window pixels ``(ys, xs)`` of the support, written into ``out``.
+
+    The support is the rectangle ``s0 <= s <= s1``, ``|t| <= half_t``. Each pixel's background is
+    linear along a line across the strip ``|t| <= half_t``, between the attenuation just beyond its
+    two sides (the mean of the smoothed image at 1..``depth`` px beyond, read along the line's own
+    direction, so that a structure running that way is read where the line continues). The lines
+    are across the axis unless a vessel crosses the body obliquely (:func:`background_shear`): then
+    they run along it, and its attenuation under the body is the one on either side where it enters
+    and leaves the strip (across the axis, its band under the body came out smeared into a wedge).
+    The sides reach beyond the body's ends where the lines are oblique (up to ``half_t + depth`` px;
+    lines that would meet them further out take the value there), so the faint apex of a cone that
+    lies beyond the support is never read as background.
+
+    Returns the lowest and the highest attenuation found around the body: on the sides along the body
+    and beyond each ``open`` end (one the body keeps its width to: a flat end; beyond a cone's the
+    support is followed by its faint apex). A structure the lines miss (a vessel that ends under the
+    body, or one it lies in) still shows there, so the blob's clutter stays honest about it."""
+    # The sides are read from ``ext`` px before the support to ``ext`` px beyond it, and no further
+    # (lines that would meet them further out take the value there): the tracker's region of interest
+    # holds that much around the body (its margin counts from the body's edge), so a blob comes out the
+    # same from it as from the full frame.
+    span = 2.0 * half_t + depth
+    max_shear = _MAX_SHEAR
+    ext = half_t + depth
+    s_lo = s0 - ext
+    ns = int(math.floor(s1 + ext - s_lo)) + 1
+    # The sides, sampled 1 px apart along the axis at each depth beyond the strip: the middle depth
+    # as far as any shear tried reaches (it chooses the shear), the others as far as the chosen one.
+    left = np.zeros((depth, ns))
+    right = np.zeros((depth, ns))
+    mid = (depth - 1) // 2
+    for i in range(ns):
+        s_ = s_lo + i
+        left[mid, i] = _smooth_at(smooth, wy0, wx0, hh, ww, s_, -(half_t + mid + 1.0), ox, oy, ax, ay)
+        right[mid, i] = _smooth_at(smooth, wy0, wx0, hh, ww, s_, half_t + mid + 1.0, ox, oy, ax, ay)
+    kappa = background_shear(left[mid], right[mid], s_lo, s0, s1, half_t + mid + 1.0, max_shear, margin)
+    reach_all = span * abs(kappa) + 2.0
+    i_lo = max(int(math.floor(s0 - reach_all - s_lo)), 0)
+    i_hi = min(int(math.ceil(s1 + reach_all - s_lo)) + 1, ns)
+    for d in range(depth):
+        if d == mid:
+            continue
+        tl, tr = -(half_t + d + 1.0), half_t + d + 1.0
+        for i in range(i_lo, i_hi):
+            s_ = s_lo + i
+            left[d, i] = _smooth_at(smooth, wy0, wx0, hh, ww, s_, tl, ox, oy, ax, ay)
+            right[d, i] = _smooth_at(smooth, wy0, wx0, hh, ww, s_, tr, ox, oy, ax, ay)
+    # Per line (by where it crosses the axis, 1 px apart), the values beyond its two ends.
+    c_lo = s0 - half_t * abs(kappa) - 1.0
+    nc = int(math.floor(s1 + half_t * abs(kappa) + 1.0 - c_lo)) + 2
+    end_l = np.empty(nc)
+    end_r = np.empty(nc)
+    for j in range(nc):
+        c = c_lo + j
+        acc_l, acc_r = 0.0, 0.0
+        for d in range(depth):
+            reach = half_t + d + 1.0
+            acc_l += _at(left[d], s_lo, c - reach * kappa)
+            acc_r += _at(right[d], s_lo, c + reach * kappa)
+        end_l[j], end_r[j] = acc_l / depth, acc_r / depth
+    rim_lo, rim_hi = np.inf, -np.inf
+    for i in range(ns):
+        s_ = s_lo + i
+        if s_ >= s0 and s_ <= s1:
+            for side in range(2):
+                acc = 0.0
+                for d in range(depth):
+                    acc += left[d, i] if side == 0 else right[d, i]
+                rim_lo, rim_hi = min(rim_lo, acc / depth), max(rim_hi, acc / depth)
+    for end in range(2):
+        if (open_lo if end == 0 else open_hi):
+            profile = _end_profile(smooth, wy0, wx0, hh, ww, ox, oy, ax, ay, s0 if end == 0 else s1,
+                                   -1.0 if end == 0 else 1.0, half_t, depth)
+            rim_lo, rim_hi = min(rim_lo, profile.min()), max(rim_hi, profile.max())
+    inv = 0.5 / half_t if half_t > 0 else 0.0
+    for i in range(n):
+        gx, gy = (wx0 + xs[i]) - ox, (wy0 + ys[i]) - oy
+        s_, t_ = gx * ax + gy * ay, -gx * ay + gy * ax
+        c = s_ - t_ * kappa
+        w_r = min(max((t_ + half_t) * inv, 0.0), 1.0)
+        value = _at(end_l, c_lo, c) * (1.0 - w_r) + _at(end_r, c_lo, c) * w_r
+        out[ys[i], xs[i]] = np.float32(value)
+    return rim_lo, rim_hi
+
+
 @kernel
 def _dilated_box(ys, xs, n, half_widths, hh, ww):  # pragma: no cover - compiled
     """The pixels ``(ys, xs)[:n]`` dilated by the row spans ``half_widths``, on their bounding box grown
@@ -678,8 +893,11 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
 
     ``p`` holds the settings: ``[min_peak_attenuation, core_fraction, min_pixels, max_extent_px,
     max_elongation, cone_reach, support_dilate_px, support_sigma, support_fraction, smooth_gain,
-    fill_rows, fill_cols, fade_step]``; ``ring_outer``/``ring_inner``/``near_hw`` the row spans of the
-    dilations (ring and weighted support).
+    fill_rows, fill_cols, fade_step, background_along_structure (0/1), direction_margin]``;
+    ``ring_outer``/``ring_inner``/``near_hw`` the row spans of the dilations (ring and weighted support).
+    The background under the body is :func:`_fill_values` (along image columns or rows), or with
+    ``background_along_structure`` :func:`_fill_across` (along a strip's lines, oblique along a vessel
+    crossing the body; the clutter then also counts what the strip's sides and flat ends see).
 
     Returns ``(status, weights, mask, scalars)``: status 0 if the component is not a plausible robot;
     ``scalars`` ``[y0, y1, x0, x1, peak above baseline, baseline, strength, centroid x, centroid y
@@ -694,6 +912,7 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
     max_elongation, cone_reach = p[4], p[5]
     dilate_px, support_sigma, support_fraction = int(p[6]), p[7], p[8]
     smooth_gain, fill_rows, fill_cols, fade_step = p[9], int(p[10]), int(p[11]), int(p[12])
+    along_structure, direction_margin = p[13] != 0.0, p[14]
     sigma_s = sigma * smooth_gain
     empty_w = np.zeros((0, 0), dtype=np.float32)
     empty_m = np.zeros((0, 0), dtype=np.uint8)
@@ -836,6 +1055,7 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
         s_ = s_of[i]
         if (s_ - s_max) < stops[0] and -(s_ - s_min) < stops[1]:
             mys[count], mxs[count] = mys[i], mxs[i]
+            s_of[count], t_of[count] = s_, t_of[i]
             count += 1
             in_lo, in_hi, in_t = min(in_lo, s_), max(in_hi, s_), max(in_t, abs(t_of[i]))
         else:
@@ -869,14 +1089,13 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
                     edge = True
                 else:
                     support[y - sy0, x - sx0] = 1
-    background = np.zeros((hh, ww), dtype=np.float32)
-    _fill_values(smooth, wy0, wx0, hh, ww, support, sy0, sy1, sx0, sx1, fill_rows, fill_cols,
-                 abs(ax) < abs(ay), background)
     # Weigh only near the body: every background pixel adds noise to the moments, more so far out.
     near, ny0, nx0 = _dilated_box(mys, mxs, count, near_hw, hh, ww)
     nh, nw = near.shape
     ky0, ky1, kx0, kx1 = hh, -1, ww, -1
-    bmin, bmax = np.inf, -np.inf
+    fys = np.empty(nh * nw, dtype=np.int64)
+    fxs = np.empty(nh * nw, dtype=np.int64)
+    nf = 0
     for y in range(nh):
         for x in range(nw):
             yy, xx = ny0 + y, nx0 + x
@@ -885,8 +1104,28 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
             near[y, x] = 1 if inside else 0
             if inside:
                 ky0, ky1, kx0, kx1 = min(ky0, yy), max(ky1, yy), min(kx0, xx), max(kx1, xx)
-                b = float(background[yy, xx])
-                bmin, bmax = min(bmin, b), max(bmax, b)
+                fys[nf], fxs[nf] = yy, xx
+                nf += 1
+    # (Along the structure:) an end is open where the body keeps half its width within 3 px of it (a
+    # flat end; a cone's apex, cut at the body's level, is much narrower there).
+    w_lo, w_hi = 0.0, 0.0
+    for i in range(count):
+        if s_of[i] <= in_lo + 3.0:
+            w_lo = max(w_lo, abs(t_of[i]))
+        if s_of[i] >= in_hi - 3.0:
+            w_hi = max(w_hi, abs(t_of[i]))
+    background = np.zeros((hh, ww), dtype=np.float32)
+    bmin, bmax = np.inf, -np.inf
+    if along_structure:
+        bmin, bmax = _fill_across(smooth, wy0, wx0, hh, ww, ox, oy, ax, ay, lo_s_, hi_s_, hi_t, fill_rows,
+                                  direction_margin * sigma_s, w_lo >= 0.5 * in_t, w_hi >= 0.5 * in_t, fys, fxs,
+                                  nf, background)
+    else:
+        _fill_values(smooth, wy0, wx0, hh, ww, support, sy0, sy1, sx0, sx1, fill_rows, fill_cols,
+                     abs(ax) < abs(ay), background)
+    for i in range(nf):
+        b = float(background[fys[i], fxs[i]])
+        bmin, bmax = min(bmin, b), max(bmax, b)
     any_near = ky1 >= 0
     for i in range(count):  # the weights' window holds the mask too
         ky0, ky1, kx0, kx1 = min(ky0, mys[i]), max(ky1, mys[i]), min(kx0, mxs[i]), max(kx1, mxs[i])
@@ -998,6 +1237,54 @@ def reach_at(profile, s0, level, direction):  # pragma: no cover - compiled
     return -(s0 + j - ((profile[j] - level) / step if step > 0 else 0.0))
 
 
+#: The longest piece of a cone's tip that the weights can have lost, as a fraction of the cone's length
+#: (see :func:`missing_cone_shift`).
+MISSING_CONE_MAX = 0.25
+
+
+@kernel
+def missing_cone_shift(profile, s0, plateau, total, plus, minus):  # pragma: no cover - compiled
+    """How far (px along ``+axis``) the weighted centroid moves when the cone tips the weights lost are
+    counted: ``profile`` (bin ``i`` at ``s0 + i``) holds ``total`` weight, ``plus``/``minus`` are the
+    outward distances of either end at the levels ``features._LEVELS`` of ``plateau``.
+
+    The body's weights stop where its contrast falls below ``support_fraction`` (0.2) of the peak
+    (segmentation), and the peak through a cone's axis falls linearly to its apex: a faint tip, about
+    a fifth of the cone, lies beyond the weights (robot 6: the last ~20 px of a 130 px cone). It is
+    little mass but far out: the centroid came out ~0.2 px towards the tail on robot 6 (0.07-0.14 px on
+    robots 7, 1 and 3; robot 6 rendered without vessel or noise: 3D centroid RMS 0.062 mm, 0.026 with
+    the tip counted). The end's own profile says
+    what is missing: ``sqrt(profile)`` falls linearly to the apex (the tip model of
+    :meth:`.Features2D.tip_distance`, levels 0.25 and 0.64 giving the cone's length ``Lc`` and its
+    apex), so beyond the weights' end ``e`` lies ``plateau L^3 / (3 Lc^2)`` of weight, ``L`` = apex - ``e``,
+    centred ``L / 4`` beyond ``e``. ``L`` is at most ``MISSING_CONE_MAX Lc`` (a frame whose apex
+    extrapolation runs far out, a vessel continuing the end, adds no more than a real cut tip can
+    lose). A flat end's extrapolated apex lies inside the weights (they extend a blurred rim and a
+    margin beyond it): nothing is added there."""
+    n = profile.size
+    first, last = 0, n - 1
+    while last > 0 and profile[last] == 0:
+        last -= 1
+    while first < last and profile[first] == 0:
+        first += 1
+    num, den = 0.0, total
+    for end in range(2):
+        r = plus if end == 0 else minus
+        # The outward distance where the weights end (the profile's last bin less its interpolation and
+        # smoothing spill).
+        edge = (s0 + last - 1.0) if end == 0 else -(s0 + first + 1.0)
+        cone = (r[1] - r[3]) / (0.8 - 0.5)   # levels 0.25 and 0.64: sqrt 0.5 and 0.8
+        if not cone > 0.0:
+            continue
+        lost = min(r[1] + 0.5 * cone - edge, MISSING_CONE_MAX * cone)
+        if lost > 0.0:
+            mass = plateau * lost ** 3 / (3.0 * cone * cone)
+            reach = edge + 0.25 * lost
+            num += mass * reach if end == 0 else -mass * reach
+            den += mass
+    return num / den
+
+
 @kernel
 def weighted_view_features(weights, cap, pixel_sigma, levels):  # pragma: no cover - compiled
     """The weighted estimator's numbers (see features.weighted_features).
@@ -1005,7 +1292,10 @@ def weighted_view_features(weights, cap, pixel_sigma, levels):  # pragma: no cov
     ``cap`` < inf saturates the weights for the axis. Returns ``(status, out)``: status 0 if the
     weights sum to zero or less; ``out`` ``[cx, cy, l1, l2, vx, vy, axis_sigma]`` (window px) followed
     by the outward distances of the +axis end at each of ``levels``, then those of the -axis end (one
-    array: each array a kernel returns costs a boxing in Python)."""
+    array: each array a kernel returns costs a boxing in Python). ``levels`` must be
+    ``features._LEVELS``. The centroid counts the cone tips beyond the weights
+    (:func:`missing_cone_shift`), and the distances are from it; the moments, the axis and its
+    noise are the weights' own."""
     n = levels.size
     out = np.zeros(7 + 2 * n)
     m00, m10, m01, mu20, mu02, mu11 = moments(weights)
@@ -1029,7 +1319,12 @@ def weighted_view_features(weights, cap, pixel_sigma, levels):  # pragma: no cov
     for k in range(n):
         out[7 + k] = reach_at(profile, s0, levels[k] * plateau, 1)
         out[7 + n + k] = reach_at(profile, s0, levels[k] * plateau, -1)
-    out[0], out[1], out[2], out[3], out[4], out[5], out[6] = c0, c1, l1, l2, v0, v1, axis_sigma
+    shift = missing_cone_shift(profile, s0, plateau, m00, out[7:7 + n], out[7 + n:7 + 2 * n])
+    for k in range(n):  # the same ends, measured from the moved centroid
+        out[7 + k] -= shift
+        out[7 + n + k] += shift
+    out[0], out[1] = c0 + shift * v0, c1 + shift * v1
+    out[2], out[3], out[4], out[5], out[6] = l1, l2, v0, v1, axis_sigma
     return 1, out
 
 
@@ -1046,7 +1341,7 @@ def warm_up() -> None:
     attenuation_from_dense(image, np.full((h, w), np.float32(math.log(20000.0))), table)
     _, smooth, labels, stats, order = candidates(a, GAUSSIAN_5, 6.0, 0.29, 0.125, 0.0)
     disk = np.array([1, 2, 2, 2, 1], dtype=np.int64)
-    params = np.array([0.25, 0.5, 8, 420, 40.0, 0.7, 2, 3.0, 0.2, 0.29, 3, 7, 4], dtype=np.float64)
+    params = np.array([0.25, 0.5, 8, 420, 40.0, 0.7, 2, 3.0, 0.2, 0.29, 3, 7, 4, 1, 3.0], dtype=np.float64)
     for label in order:
         x, y, bw, bh = (int(v) for v in stats[label, :4])
         refine(a, smooth, labels, int(label), x, y, bw, bh, 0.01, params, disk, disk, disk)

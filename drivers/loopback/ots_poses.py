@@ -7,6 +7,7 @@ tracker coordinates; tool index 0 is the first handle a client requested. A tool
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 
@@ -98,3 +99,36 @@ def as_rotation(rotation: ArrayLike) -> Rotation:
     if array.shape == (4,):
         return Rotation.from_quat(array, scalar_first=True)
     raise ValueError(f"a tool rotation is a 3x3 matrix or a quaternion w,x,y,z, got shape {array.shape}")
+
+
+class HeldPose:
+    """One tool held still at ``(rotation, translation_mm)``: ``pose(now)`` (picklable, for a lab in another
+    process)."""
+
+    def __init__(self, rotation: ArrayLike, translation_mm: ArrayLike) -> None:
+        self.rotation = np.asarray(rotation, float)
+        self.translation_mm = np.asarray(translation_mm, float)
+
+    def __call__(self, now: float) -> Pose:
+        return self.rotation, self.translation_mm
+
+
+class PivotingPose:
+    """A pointer pivoted about its tip, held in a divot at ``pivot_mm``: two incommensurate swings of
+    ``swing_rad`` about the x and y axes of ``base_rotation`` (0.9 and 0.55 turns per second), so the
+    pointer cones about its tip in every direction; ``tip_mm`` is the tip in the pointer's frame."""
+
+    def __init__(self, pivot_mm: ArrayLike, base_rotation: ArrayLike, swing_rad: float, tip_mm: ArrayLike,
+                 start_s: float) -> None:
+        self.pivot_mm = np.asarray(pivot_mm, float)
+        self.base_rotation = np.asarray(base_rotation, float)
+        self.swing_rad = float(swing_rad)
+        self.tip_mm = np.asarray(tip_mm, float)
+        self.start_s = float(start_s)
+
+    def __call__(self, now: float) -> Pose:
+        phase = 2.0 * math.pi * (now - self.start_s)
+        turn = Rotation.from_rotvec([self.swing_rad * math.sin(0.9 * phase), self.swing_rad * math.cos(0.55 * phase),
+                                     0.0])
+        rotation = self.base_rotation @ turn.as_matrix()
+        return rotation, self.pivot_mm - rotation @ self.tip_mm

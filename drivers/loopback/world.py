@@ -151,6 +151,16 @@ class SimWorld:
                    tool_in_robot=RigidTransform.from_mapping(world.get("tool_in_robot")),
                    background_field_t=world.get("background_field_t", (0.0, 0.0, 0.0)))
 
+    def __getstate__(self) -> dict[str, Any]:
+        """Pickled without its lock (the simulated lab's child process gets the world whole)."""
+        state = self.__dict__.copy()
+        del state["_lock"]
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self._lock = threading.Lock()
+
     # -- state -----------------------------------------------------------------------------------
     @property
     def pose(self) -> RobotState:

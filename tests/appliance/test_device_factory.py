@@ -17,7 +17,8 @@ from appliance.device_factory import amplifier_limits, open_devices, perturbed_c
 from appliance.errors import DeviceNotFoundError
 from appliance.robots import load_robots
 from appliance.session_config import AmplifierDevice, session_from_mapping
-from appliance.sim_bench import PoseHistory, SimClock
+from appliance.sim_bench import SimClock
+from drivers.loopback.lab import PoseHistory
 from drivers.amplifier import Amplifier
 from drivers.loopback.xray_render import biplane_views
 from drivers.usb_grabber import UsbGrabber
@@ -87,10 +88,11 @@ def test_amplifier_limits_come_from_the_coils_lowered_by_the_device_section() ->
     assert lowered.watchdog_ms == 100
 
 
-def test_loopback_devices_sit_on_real_transports_and_share_one_world() -> None:
+@pytest.mark.parametrize("separate_lab", [True, False], ids=["lab in a child process", "lab in process"])
+def test_loopback_devices_sit_on_real_transports_and_share_one_world(separate_lab: bool) -> None:
     session = session_from_mapping(sim_mapping(), config_path("sim.yaml"))
     coils = load_coils()
-    with open_devices(session, load_robots()[1], coils) as devices:
+    with open_devices(session, load_robots()[1], coils, separate_lab=separate_lab) as devices:
         sim = devices.sim
         assert sim is not None
         assert isinstance(devices.amplifier, Amplifier)
@@ -106,18 +108,29 @@ def test_loopback_devices_sit_on_real_transports_and_share_one_world() -> None:
         np.testing.assert_allclose(sim.world.last_field_t, 0.0)
         with sim.real_time():
             devices.amplifier.enable()
+        period = 1.0 / 30.0
         for _ in range(8):
             # A command every 33 ms of simulated time, as the loop does: the host's heartbeat runs in real
-            # time and cannot feed the 200 ms watchdog across a jump of simulated time.
-            devices.amplifier.set_currents([2.0] + [0.0] * 7)
-            sim.step(1.0 / 30.0)
+            # time and cannot feed the 200 ms watchdog across a jump of simulated time. The driver's slew
+            # limit runs on the host's (real) clock too, so the commands are 33 ms apart in real time as
+            # well: back to back (a world step takes 1-7 ms of wall time) the host ramps 2 A at 120 A/s of
+            # WALL time and sends ~1.8 A by the eighth command on a quiet machine.
+            sent = time.monotonic()
+            result = devices.amplifier.set_currents([2.0] + [0.0] * 7)
+            sim.step(period)
+            time.sleep(max(0.0, sent + period - time.monotonic()))
+        assert result.commanded_a[0] == 2.0 and result.slew_scale == 1.0   # the host's ramp is done
         np.testing.assert_allclose(sim.measured_currents_a()[0], 2.0, atol=0.02)
         expected = sim.world.field_at(sim.world.pose.centroid_mm, sim.measured_currents_a())
         np.testing.assert_allclose(sim.world.last_field_t, expected, rtol=0.02)
         assert np.linalg.norm(expected) > 1e-4
         samples = devices.ots.wait_for_frame(timeout_s=2.0) if devices.ots else []
         assert samples and not samples[0].missing
-    assert not sim.amplifier_fake.snapshot().output_on       # closing shut the amplifier down
+    # Closing shut the amplifier down (a lab in a child process keeps the fake's last state as it ends).
+    final = sim.lab.final_amplifier_state if separate_lab else sim.amplifier_fake.snapshot()
+    assert final is not None and not final.output_on
+    if separate_lab:
+        assert sim.lab.process.poll() is not None              # and ended the lab's process
 
 
 def test_real_kinds_name_the_port_that_is_missing(tmp_path: Path) -> None:

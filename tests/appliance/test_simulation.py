@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import copy
 import math
+import os
 from pathlib import Path
 from typing import Any
 
@@ -38,7 +39,9 @@ def small_session(**sections: dict[str, Any]) -> Session:
 
 
 def run_recorded(session: Session, tmp_path: Path, seconds: float, faults: dict[str, float] | None = None
-                 ) -> tuple[SimResult, Path, Simulation]:
+                 ) -> tuple[SimResult, Path, Simulation, Any]:
+    """The run, its recording, the simulation (closed) and the amplifier fake's state after the run (read
+    before the simulated lab's process ends with the session)."""
     path = tmp_path / "session.mcap"
     with Simulation(session) as sim:
         recorder = Recorder.create(path, config=session.config.model_dump(mode="json"),
@@ -48,7 +51,8 @@ def run_recorded(session: Session, tmp_path: Path, seconds: float, faults: dict[
             result = sim.run(seconds, faults=faults)
         finally:
             recorder.close()
-    return result, path, sim
+        amplifier = sim.bench.amplifier_fake.snapshot()
+    return result, path, sim, amplifier
 
 
 def zero_bound_s(result: SimResult) -> float:
@@ -74,7 +78,7 @@ def assert_recorded_up_to_fault(path: Path, result: SimResult, device: str) -> l
 
 def test_nominal_run_follows_the_path_and_records_everything(tmp_path: Path) -> None:
     # 384 x 336 (0.4 mm pixels): at 256 x 224 recognition's bias (~1 mm) steers the robot onto the wall.
-    result, path, sim = run_recorded(small_session(imaging={"image_size": [384, 336]}), tmp_path, seconds=3.0)
+    result, path, sim, _ = run_recorded(small_session(imaging={"image_size": [384, 336]}), tmp_path, seconds=3.0)
     assert result.stop_reason is None                 # time limit, no fault
     assert sim.orchestrator.stats.lost <= 3
     cross = result.cross_track()
@@ -95,7 +99,7 @@ def test_nominal_run_follows_the_path_and_records_everything(tmp_path: Path) -> 
 
 
 def test_amplifier_link_cut_stops_the_loop_and_the_watchdog_zeroes_the_coils(tmp_path: Path) -> None:
-    result, path, _ = run_recorded(small_session(), tmp_path, seconds=2.0, faults={"amplifier_link": FAULT_AT_S})
+    result, path, _, _ = run_recorded(small_session(), tmp_path, seconds=2.0, faults={"amplifier_link": FAULT_AT_S})
     assert result.stop_reason is not None and "amplifier link" in result.stop_reason
     cut = result.fault_times["amplifier_link"]
     zero = result.currents_zero_after(cut)
@@ -107,12 +111,12 @@ def test_amplifier_link_cut_stops_the_loop_and_the_watchdog_zeroes_the_coils(tmp
 
 
 def test_estop_cuts_the_output_and_the_loop_records_why(tmp_path: Path) -> None:
-    result, path, sim = run_recorded(small_session(), tmp_path, seconds=2.0, faults={"estop": FAULT_AT_S})
+    result, path, _, amplifier = run_recorded(small_session(), tmp_path, seconds=2.0, faults={"estop": FAULT_AT_S})
     assert result.stop_reason is not None and "ESTOP" in result.stop_reason.upper()
     pressed = result.fault_times["estop"]
     zero = result.currents_zero_after(pressed)
     assert zero is not None and zero - pressed <= WATCHDOG_S   # output cut at once: L/R decay only
-    assert not sim.bench.amplifier_fake.snapshot().output_on
+    assert not amplifier.output_on
     faults = assert_recorded_up_to_fault(path, result, "amplifier")
     assert any("emergency stop" in f["reason"] for f in faults)
 
@@ -120,7 +124,7 @@ def test_estop_cuts_the_output_and_the_loop_records_why(tmp_path: Path) -> None:
 def test_tracking_loss_holds_then_zeroes(tmp_path: Path) -> None:
     zero_after = 12
     session = small_session(safety={"hold_after_lost_frames": 3, "zero_after_lost_frames": zero_after})
-    result, path, _ = run_recorded(session, tmp_path, seconds=2.2, faults={"tracking": FAULT_AT_S})
+    result, path, _, _ = run_recorded(session, tmp_path, seconds=2.2, faults={"tracking": FAULT_AT_S})
     hidden = result.fault_times["tracking"]
     modes = [r.mode for r in result.reports if r.t_s > hidden]
     assert "hold" in modes and "zero" in modes and modes.index("hold") < modes.index("zero")
@@ -135,7 +139,7 @@ def test_tracking_loss_holds_then_zeroes(tmp_path: Path) -> None:
 
 
 def test_a_grabber_that_stops_stops_the_loop(tmp_path: Path) -> None:
-    result, path, _ = run_recorded(small_session(), tmp_path, seconds=2.0, faults={"grabber": FAULT_AT_S})
+    result, path, _, _ = run_recorded(small_session(), tmp_path, seconds=2.0, faults={"grabber": FAULT_AT_S})
     assert result.stop_reason is not None and "no biplane pair" in result.stop_reason
     silent = result.fault_times["grabber"]
     assert result.stop_t_s is not None and result.stop_t_s - silent <= 0.25 + 2.0 / FPS
@@ -148,3 +152,24 @@ def test_a_grabber_that_stops_stops_the_loop(tmp_path: Path) -> None:
 def test_unknown_fault_is_refused() -> None:
     with Simulation(small_session()) as sim, pytest.raises(ValueError, match="unknown fault"):
         sim.run(0.1, faults={"meteor": 0.05})
+
+
+def test_the_loop_stops_safely_when_the_simulated_lab_dies() -> None:
+    """The world, the amplifier fake and the tracker fake run in one child process: killed mid-run, the loop
+    stops with a message that says so, the truth up to then is kept and the child leaves nothing behind."""
+    with Simulation(small_session()) as sim:
+        lab = sim.bench.lab
+        assert lab.process.pid != os.getpid()
+
+        def kill_after_ten(report: Any, truth: Any) -> None:
+            if report.index == 10:
+                lab.process.kill()
+                lab.process.wait()
+
+        result = sim.run(2.0, on_step=kill_after_ten)
+    assert result.stop_reason is not None and result.stop_reason.startswith("simulated lab lost")
+    assert "killed by signal 9" in result.stop_reason
+    assert result.reports[-1].stopped and result.reports[-1].mode == "stop"
+    assert len(result.truth) == 10 and result.current_trace
+    assert not result.shutdown_safe                  # the amplifier could not confirm zero: said so
+    assert not os.path.exists(lab.shm_path)

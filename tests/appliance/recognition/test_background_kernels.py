@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 
 from appliance.recognition import background_kernels as kernels
-from appliance.recognition.background import _downsample_log, _log_table
+from appliance.recognition import view_kernels
+from appliance.recognition.background import _downsample_log, _log_table, log_background
+from appliance.recognition.segmentation import Roi, attenuation
 
 
 def _reference_log(image: np.ndarray, f: int, dark: float) -> np.ndarray:
@@ -154,7 +156,8 @@ def test_a_read_only_frame_compiles_nothing_after_the_warm_up() -> None:
     from appliance.recognition import RecognitionSettings, detect, log_background
 
     kernels.warm_up()
-    names = ("block_mean_log", "block_mean_log_4", "median_abs_step", "coarse_components", "upsample_attenuation")
+    names = ("block_mean_log", "block_mean_log_4", "median_abs_step", "coarse_components", "upsample_attenuation",
+             "window_attenuation", "coarse_candidates")
     compiled = {name: len(getattr(kernels, name).signatures) for name in names}
     image = np.random.default_rng(3).normal(30000, 60, (256, 256)).astype(np.uint16)
     image[100:108, 60:160] = 9000
@@ -162,3 +165,125 @@ def test_a_read_only_frame_compiles_nothing_after_the_warm_up() -> None:
     blobs = detect(image, log_background(image, 48, 1000.0), RecognitionSettings(dark_level=1000.0))
     assert len(blobs) == 1
     assert {name: len(getattr(kernels, name).signatures) for name in names} == compiled
+
+
+def _window_noise_cases() -> list[np.ndarray]:
+    rng = np.random.default_rng(17)
+    cases = [rng.normal(0, 0.02, (h, w)).astype(np.float32) for h, w in [(1, 2), (1, 3), (2, 2), (7, 9), (40, 61),
+                                                                          (97, 130), (3, 700)]]
+    cases.append((rng.integers(0, 4, (50, 70)) * 0.01).astype(np.float32))   # many ties at the median
+    cases.append(np.full((30, 40), 0.25, np.float32))                         # all differences zero
+    return cases
+
+
+@pytest.mark.parametrize("case", range(len(_window_noise_cases())))
+def test_window_attenuation_is_segments_attenuation_and_its_noise(case: int) -> None:
+    values = _window_noise_cases()[case]
+    h, w = values.shape
+    # A frame whose gray levels index a table holding the wanted attenuations (the coarse log B is 0),
+    # placed inside a larger frame so that the window is not the whole image.
+    frame = np.zeros((h + 10, w + 6), np.uint16)
+    frame[4:4 + h, 2:2 + w] = np.arange(1, h * w + 1, dtype=np.uint16).reshape(h, w) if h * w < 65535 else 0
+    table = np.zeros(65536, np.float32)
+    table[1:h * w + 1] = -values.ravel()
+    coarse = np.zeros((max(1, (h + 10) // 4), max(1, (w + 6) // 4)), np.float32)
+    fy, fx = (h + 10) / coarse.shape[0], (w + 6) / coarse.shape[1]
+    a, sigma = kernels.window_attenuation(frame, 4, 4 + h, 2, 2 + w, coarse, fy, fx, table)
+    reference = view_kernels.attenuation_from_coarse(frame, 4, 4 + h, 2, 2 + w, coarse, fy, fx, table)
+    np.testing.assert_array_equal(a, reference)
+    np.testing.assert_array_equal(a, values)
+    assert sigma == view_kernels.noise_sigma_f32(reference)
+    d = np.abs(np.diff(values, axis=1)).ravel()
+    assert sigma == pytest.approx(1.4826 * float(np.median(d)) / np.sqrt(2.0), rel=1e-6, abs=1e-12)
+
+
+def test_window_attenuation_leaves_the_noise_to_segment_where_it_is_not_a_plain_median() -> None:
+    frame = np.full((16, 16), 5, np.uint16)
+    table = np.zeros(65536, np.float32)
+    coarse = np.zeros((4, 4), np.float32)
+    assert kernels.window_attenuation(frame, 0, 16, 3, 4, coarse, 4.0, 4.0, table)[1] == -1.0   # 1 px wide
+    table[5] = np.inf
+    assert kernels.window_attenuation(frame, 0, 16, 0, 16, coarse, 4.0, 4.0, table)[1] == -1.0
+
+
+def test_median_pair_when_the_sample_misses_the_median() -> None:
+    # The strided sample sees only the large values: its bracket misses the median, the whole array is
+    # taken instead; and a sample that does bracket it. Both give numpy's order statistics.
+    rng = np.random.default_rng(23)
+    for misleading in (True, False):
+        values = rng.random(4096).astype(np.float32)
+        if misleading:
+            values[::16] = 10.0 + rng.random(256).astype(np.float32)
+        bits = values.view(np.uint32)
+        for k in (0, 100, 2047, 4094):
+            lower, upper = kernels._median_pair(bits.copy(), bits.size, k)
+            ordered = np.sort(values)
+            got = np.array([lower, upper], dtype=np.uint32).view(np.float32)
+            assert (got[0], got[1]) == (ordered[k], ordered[k + 1])
+
+
+def _reference_windows(a: np.ndarray, shape: tuple[int, int], fx: float, fy: float, margin_px: float,
+                       cone_reach: float, max_extent_px: float, threshold: float, floor: float) -> list[Roi]:
+    """The windows as detection computed them before coarse_candidates: components, their cores' boxes
+    in Python (long cores left out), Roi.around."""
+    labels = np.zeros(a.shape, np.int32)
+    stats, peaks = kernels.coarse_components(a, threshold, 0.5, labels)
+    order = np.argsort(-stats[1:, kernels.STAT_AREA], kind="stable")[:24] + 1
+    windows = []
+    for label in order.tolist():
+        if float(peaks[label]) < floor:
+            continue
+        x0, y0, x1, y1 = (int(v) for v in stats[label, kernels.STAT_CORE_X0:kernels.STAT_CORE_Y1 + 1])
+        extent = max((x1 - x0) * fx, (y1 - y0) * fy)
+        if extent > max_extent_px:
+            continue
+        roi = Roi.around(np.array([[x0 * fx, y0 * fy], [x1 * fx, y1 * fy]]),
+                         margin_px + cone_reach * extent + 2.0 * max(fx, fy), shape)
+        if roi is not None:
+            windows.append(roi)
+    return windows
+
+
+def test_coarse_candidates_give_the_windows_of_the_python_steps() -> None:
+    rng = np.random.default_rng(29)
+    a = cv2.GaussianBlur(rng.normal(0, 0.05, (120, 150)).astype(np.float32), (0, 0), 1.0)
+    for _ in range(40):   # blobs of all sizes and strengths, some at the edges
+        y, x = rng.integers(-4, 120), rng.integers(-4, 150)
+        a[max(y, 0):y + rng.integers(1, 12), max(x, 0):x + rng.integers(1, 12)] += rng.uniform(0.05, 1.0)
+    a[60:63, 5:145] += 0.4   # a long core
+    shape = (480, 600)
+    for margin, reach, longest in ((14.0, 0.7, 420.0), (40.0, 0.0, 60.0), (4.0, 2.0, 20.0)):
+        rows, peaks, threshold = kernels.coarse_candidates(a, 4, 0.0, 6.0, 0.0625, 0.125, 0.5, 24, 4.0, 4.0, longest,
+                                                           margin, reach, shape[0], shape[1])
+        assert threshold >= 0.0625
+        windows = [Roi(*row[1:5]) for row in rows.tolist() if row[0] == kernels.WINDOW]
+        expected = _reference_windows(a, shape, 4.0, 4.0, margin, reach, longest, threshold, 0.125)
+        assert windows == expected and len(windows) > 3
+        long_cores = [row for row in rows.tolist() if row[0] == kernels.LONG_CORE]
+        assert long_cores or longest == 420.0
+
+
+def test_coarse_windows_and_segment_see_the_windows_as_before() -> None:
+    """detect's windows, attenuation and noise: segment on them gives what it gives measuring them itself."""
+    from appliance.recognition import RecognitionSettings, detect
+    from appliance.recognition.detection import coarse_windows
+    from appliance.recognition.segmentation import segment
+
+    rng = np.random.default_rng(31)
+    image = rng.poisson(20000, (384, 384)).astype(np.uint16)
+    image[100:108, 60:140] = rng.poisson(9000, (8, 80))
+    image[250:262, 200:230] = rng.poisson(12000, (12, 30))
+    settings = RecognitionSettings(dark_level=1000.0)
+    background = log_background(image, 48, 1000.0)
+    windows = coarse_windows(background, settings)
+    assert len(windows) == 2
+    blobs = detect(image, background, settings)
+    expected = sorted((b for roi in windows for b in segment(image, background, roi, settings)),
+                      key=lambda b: -b.strength)
+    assert len(blobs) == len(expected) == 2
+    for got, want in zip(blobs, expected):
+        assert got.window == want.window and got.sigma == want.sigma and got.centroid_px == want.centroid_px
+        np.testing.assert_array_equal(got.weights, want.weights)
+        np.testing.assert_array_equal(got.mask, want.mask)
+    a = attenuation(image, background, windows[0], 1000.0)
+    assert blobs[0].sigma == view_kernels.noise_sigma_f32(a) or blobs[1].sigma == view_kernels.noise_sigma_f32(a)

@@ -98,6 +98,45 @@ def test_weighted_features_find_the_conical_head_and_its_apex() -> None:
     assert tail[0] == pytest.approx(20.0, abs=0.15)
 
 
+def _cut_cone(angle: float, cut: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A rod shaped like robot 6 (cone 55 % of the length) whose weights lost the apex's last ``cut`` of
+    the cone, as the segmentation's support loses a faint tip; with the uncut body's weighted centroid
+    and the unit axis (towards the head)."""
+    ax = np.array([math.cos(math.radians(angle)), math.sin(math.radians(angle))])
+    whole = _rod_image((130, 140), (70.0, 65.0), angle, half_length=50.0, radius=8.0, cone=62.0, supersample=4)
+    ys, xs = np.mgrid[0:whole.shape[0], 0:whole.shape[1]]
+    ideal = np.array([(xs * whole).sum(), (ys * whole).sum()]) / whole.sum()
+    s = (xs - 70.0) * ax[0] + (ys - 65.0) * ax[1]
+    return np.where(s <= 50.0 - cut * 62.0, whole, 0.0).astype(np.float32), ideal, ax
+
+
+@pytest.mark.parametrize("angle", [0.0, 17.0, 133.0])
+def test_weighted_centroid_counts_the_cone_tip_the_weights_lost(angle: float) -> None:
+    weights, ideal, ax = _cut_cone(angle, 0.22)
+    ys, xs = np.mgrid[0:weights.shape[0], 0:weights.shape[1]]
+    moment = np.array([(xs * weights).sum(), (ys * weights).sum()]) / weights.sum()
+    f = weighted_features(_blob(weights))
+    # The weights' own centroid is a fifth of a pixel towards the tail; the completed one is on the body's.
+    assert float((moment - ideal) @ ax) < -0.18
+    assert abs(float((f.centroid - ideal) @ ax)) < 0.06
+    assert float(np.linalg.norm(f.centroid - ideal)) < 0.06
+    # The ends did not move with the centroid: the distances are measured from it.
+    assert f.head_index == 0
+    assert f.with_head(f.head_index).tips == pytest.approx(f.tips, abs=1e-9)
+    assert f.tips[0] == pytest.approx(np.array([70.0, 65.0]) + 50.0 * ax, abs=1.0)
+
+
+def test_cone_completion_adds_no_more_than_a_cut_tip_can_lose() -> None:
+    # Two fifths of the cone missing (more than the support loses): the centroid moves towards the body's,
+    # by no more than the largest lost tip allows, never past it.
+    weights, ideal, ax = _cut_cone(17.0, 0.4)
+    ys, xs = np.mgrid[0:weights.shape[0], 0:weights.shape[1]]
+    moment = float((np.array([(xs * weights).sum(), (ys * weights).sum()]) / weights.sum() - ideal) @ ax)
+    completed = float((weighted_features(_blob(weights)).centroid - ideal) @ ax)
+    assert moment < completed < 0.0
+    assert completed - moment < 0.5 * abs(moment)
+
+
 def test_axial_profile_keeps_the_total_weight() -> None:
     weights = _rod_image((40, 60), (30.0, 20.0), 30.0, half_length=12.0, radius=3.0)
     profile, _ = axial_profile(weights, np.array([30.0, 20.0]), np.array([math.cos(0.5236), math.sin(0.5236)]))

@@ -78,10 +78,13 @@ def _compare(image: np.ndarray, calibration_view: str, settings: RecognitionSett
     (6, (1.0, 0.0, 6.0), (0.6, -0.3, 0.74)),    # over the vessel
     (7, (8.0, 6.0, -5.0), (-0.7, 0.2, 0.68)),
 ])
+@pytest.mark.parametrize("along_structure", [False, True])
 def test_one_call_equals_segment_gate_and_features(views: dict[str, object], calibration: Calibration, robot: int,
-                                                   centroid: tuple[float, ...], direction: tuple[float, ...]) -> None:
+                                                   centroid: tuple[float, ...], direction: tuple[float, ...],
+                                                   along_structure: bool) -> None:
     images = _rendered_views(views, robot, RobotPose(np.array(centroid), np.array(direction)), seed=robot)
-    settings = RecognitionSettings()
+    # Both backgrounds under the body (along image columns or rows; along the vessel the body crosses).
+    settings = RecognitionSettings(background_along_structure=along_structure)
     for name, image in images.items():
         log_bg = log_background(image, settings.background_scale_px, settings.dark_level)
         strongest = next(b for b in segment(image, log_bg, None, settings) if not b.touches_border)

@@ -1,0 +1,243 @@
+"""Where the wall time of ``appliance sim``'s "frame on host -> command written" goes (issue 8).
+
+Runs the closed loop of ``config/sim.yaml`` (recording off) and, for every step, reads the CPU clock of
+every thread of this process (``pthread_getcpuclockid``, ~1 us a thread) at three moments:
+
+* ``host``: when the later frame of the step's pair is handed on by its grabber's driver (the pair's
+  "frame on host" time is stamped when its last transfer is in, before the driver checks the payload's
+  CRC: the line "stamp -> driver hands it on");
+* ``got``: when the loop's ``next_pair`` returns the pair;
+* ``written``: when the loop's ``write`` of the current command to the amplifier's port returns.
+
+It prints the latency and its two parts (host -> got: pairing and the loop's wake-up; got -> written:
+recognition, control, allocation, the command), the loop thread's CPU time in got -> written against the
+wall time (the difference is time the loop could not run: another thread held the GIL, or the core was
+taken; the loop thread's run-queue wait from ``/proc/self/task/TID/schedstat`` says how much was the
+core), and the CPU time other threads of the process used inside each window, by thread (their sum is
+an upper bound of the GIL time they took from the loop). Also each thread's CPU per step over the whole
+run, the harness's world step (``advance_to``, in the loop's thread, between steps) and, when the
+simulated lab runs in a child process, the child processes' CPU per step.
+
+    .venv/bin/python benchmarks/sim_latency.py [--seconds 20] [--in-process]
+
+``--in-process`` keeps the simulated lab (world, amplifier fake, tracker fake) in this process, as
+before issue 8's split (where the build has that option). Quote the load (``uptime``) beside the figures.
+"""
+from __future__ import annotations
+
+import argparse
+import inspect
+import os
+import sys
+import threading
+import time
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from appliance.config_io import config_path, read_yaml  # noqa: E402
+from appliance.session_config import session_from_mapping  # noqa: E402
+from appliance.simulation import Simulation, summary_lines  # noqa: E402
+
+_TICKS = os.sysconf("SC_CLK_TCK")
+
+
+def _threads() -> dict[int, str]:
+    return {t.ident: t.name for t in threading.enumerate() if t.ident is not None}
+
+
+def _cpu_ns(ident: int) -> int | None:
+    try:
+        return time.clock_gettime_ns(time.pthread_getcpuclockid(ident))
+    except (OSError, ProcessLookupError):
+        return None
+
+
+_MAIN_TID = threading.get_native_id()
+
+
+def _queued_ns() -> int:
+    """Nanoseconds the loop's thread has waited on a run queue (runnable, its core taken by another task)."""
+    try:
+        with open(f"/proc/self/task/{_MAIN_TID}/schedstat") as handle:
+            return int(handle.read().split()[1])
+    except (OSError, IndexError, ValueError):
+        return 0
+
+
+def _snapshot() -> dict[int, int]:
+    out = {}
+    for ident in list(_threads()):
+        value = _cpu_ns(ident)
+        if value is not None:
+            out[ident] = value
+    out[-1] = _queued_ns()
+    return out
+
+
+def _children_cpu_s() -> float:
+    """CPU seconds (user + system) of this process's live child processes."""
+    total = 0.0
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == os.getpid():          # ppid
+            total += (int(fields[11]) + int(fields[12])) / _TICKS
+    return total
+
+
+def _label(name: str, names: dict[str, str]) -> str:
+    for device, where in names.items():
+        path = where.rsplit(" on ", 1)[-1]
+        if path and name.endswith(path):
+            return f"{name.split('-')[0]}({device})"
+    return name
+
+
+def _pct(values: list[float], q: float) -> float:
+    return float(np.percentile(values, q)) if values else float("nan")
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seconds", type=float, default=20.0)
+    parser.add_argument("--in-process", action="store_true", help="the simulated lab in this process")
+    args = parser.parse_args()
+    data = read_yaml(config_path("sim.yaml"))
+    data["recording"]["enabled"] = False
+    session = session_from_mapping(data, config_path("sim.yaml"))
+    options: dict[str, Any] = {}
+    if "separate_lab" in inspect.signature(Simulation.__init__).parameters:
+        options["separate_lab"] = not args.in_process
+    elif args.in_process:
+        print("(this build has the lab in the loop's process only)")
+    main_ident = threading.get_ident()
+    host_snaps: dict[tuple[str, int], tuple[float, dict[int, int]]] = {}
+    steps: list[dict[str, Any]] = []
+    current: dict[str, Any] = {}
+    world_cpu: list[float] = []
+    world_wall: list[float] = []
+
+    with Simulation(session, **options) as sim:
+        names = dict(sim.devices.names)
+        for source in sim.devices.frames.sources.values():
+            original = source._to_frame
+
+            def to_frame(assembled: Any, host_time: float, original: Any = original) -> Any:
+                frame = original(assembled, host_time)
+                host_snaps[(frame.plane, frame.number)] = (host_time, _snapshot(), time.monotonic())
+                if len(host_snaps) > 64:
+                    host_snaps.pop(next(iter(host_snaps)))
+                return frame
+
+            source._to_frame = to_frame
+        frames = sim.frames
+        next_pair = frames.next_pair
+
+        def timed_next_pair(timeout_s: float) -> Any:
+            pair = next_pair(timeout_s)
+            current.clear()
+            current.update(pair=pair, got=(time.monotonic(), _snapshot()))
+            return pair
+
+        frames.next_pair = timed_next_pair
+        port = sim.devices.amplifier._port
+        write = port.write
+
+        def timed_write(data: bytes) -> Any:
+            n = write(data)
+            if threading.get_ident() == main_ident and "pair" in current and "written" not in current:
+                current["written"] = (time.monotonic(), _snapshot())
+            return n
+
+        port.write = timed_write
+        advance_to = sim.bench.advance_to
+
+        def timed_advance_to(t_s: float, **kw: Any) -> None:
+            c, w = time.thread_time_ns(), time.perf_counter()
+            advance_to(t_s, **kw)
+            world_cpu.append((time.thread_time_ns() - c) / 1e6)
+            world_wall.append((time.perf_counter() - w) * 1e3)
+
+        sim.bench.advance_to = timed_advance_to
+
+        def on_step(report: Any, truth: Any) -> None:
+            if report.latency_write_s is None or "written" not in current or "pair" not in current:
+                return
+            pair = current["pair"]
+            later = max(pair.frames.values(), key=lambda f: f.host_time_s)
+            host = host_snaps.get((later.plane, later.number))
+            steps.append({"latency": report.latency_write_s * 1e3, "host": host, "got": current["got"],
+                          "written": current["written"], "index": report.index,
+                          "recognition_ms": report.stages_us.get("recognition", 0.0) / 1e3})
+
+        cpu_start = _snapshot()
+        children_start = _children_cpu_s()
+        wall_start = time.perf_counter()
+        result = sim.run(args.seconds, on_step=on_step)
+        wall = time.perf_counter() - wall_start
+        cpu_end = _snapshot()
+        children_cpu = _children_cpu_s() - children_start
+        thread_names = _threads()
+        stats = sim.orchestrator.stats
+
+    print(f"appliance sim, {args.seconds:g} s simulated, lab {'in process' if args.in_process else 'default'}; "
+          f"load {os.getloadavg()[0]:.2f}")
+    print("\n".join(summary_lines(result, stats)))
+    n = max(len(result.reports), 1)
+    lat = [s["latency"] for s in steps]
+    a_wall = [(s["got"][0] - s["host"][0]) * 1e3 for s in steps if s["host"]]
+    b_wall = [(s["written"][0] - s["got"][0]) * 1e3 for s in steps]
+    b_loop = [(s["written"][1][main_ident] - s["got"][1][main_ident]) / 1e6 for s in steps]
+    stamp = [(s["host"][2] - s["host"][0]) * 1e3 for s in steps if s["host"]]
+    b_queue = [(s["written"][1][-1] - s["got"][1][-1]) / 1e6 for s in steps]
+    ab_queue = [(s["written"][1][-1] - s["host"][1][-1]) / 1e6 for s in steps if s["host"]]
+    print(f"\nsteps measured {len(steps)}; ms: p50 / p99 / max")
+    for label, values in (("frame on host -> written", lat), ("  host -> got (pairing, wake-up)", a_wall),
+                          ("    of which stamp -> driver hands it on", stamp),
+                          ("  got -> written", b_wall), ("    loop thread CPU in it", b_loop),
+                          ("    not running (wall - CPU)", [w - c for w, c in zip(b_wall, b_loop)]),
+                          ("    of which on a run queue", b_queue),
+                          ("  loop on a run queue, host -> written", ab_queue)):
+        print(f"  {label:<34} {_pct(values, 50):7.2f} {_pct(values, 99):7.2f} {max(values, default=float('nan')):7.2f}")
+    worst = sorted(range(len(steps)), key=lambda i: lat[i])[-max(1, len(steps) // 100):]
+    print("  worst steps (index: latency, recognition ms): " + ", ".join(
+        f"{steps[i]['index']}: {lat[i]:.1f}, {steps[i]['recognition_ms']:.1f}" for i in reversed(worst)))
+    others: dict[str, list[float]] = defaultdict(list)
+    others_worst: dict[str, float] = defaultdict(float)
+    for i, s in enumerate(steps):
+        start = s["host"][1] if s["host"] else s["got"][1]
+        end = s["written"][1]
+        for ident, value in end.items():
+            if ident in (main_ident, -1) or ident not in start:
+                continue
+            label = _label(thread_names.get(ident, str(ident)), names)
+            others[label].append((value - start[ident]) / 1e6)
+            if i in worst:
+                others_worst[label] += (value - start[ident]) / 1e6 / len(worst)
+    print("\nother threads' CPU inside host -> written (ms per step): mean, p99, mean over the worst 1 % of steps")
+    for label, values in sorted(others.items(), key=lambda kv: -float(np.mean(kv[1]))):
+        print(f"  {label:<44} {np.mean(values):7.3f} {_pct(values, 99):7.3f} {others_worst[label]:7.3f}")
+    print(f"\nwhole run, CPU per step (ms), {n} steps, {wall:.1f} s wall:")
+    for ident, value in sorted(cpu_end.items(), key=lambda kv: -(kv[1] - cpu_start.get(kv[0], kv[1]))):
+        if ident not in cpu_start or ident == -1:
+            continue
+        used = (value - cpu_start[ident]) / 1e6 / n
+        if used >= 0.01:
+            print(f"  {_label(thread_names.get(ident, str(ident)), names):<44} {used:7.3f}")
+    print(f"  {'child processes':<44} {children_cpu * 1e3 / n:7.3f}")
+    print(f"  harness world step (advance_to, loop thread) CPU {np.median(world_cpu):.2f} ms p50, "
+          f"wall {np.median(world_wall):.2f} ms p50 / {_pct(world_wall, 99):.2f} p99")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
