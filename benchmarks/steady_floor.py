@@ -106,6 +106,8 @@ def _recorded_rois(scene: RenderedScene, frames: list, settings: RecognitionSett
         return original(image, log_bg, roi, settings, predicted_px, **kwargs)
 
     tracker = PostureTracker(scene.calibration, settings)
+    # The ROIs as the per-view path searches them (the one call per pair computes the same ROIs inside).
+    tracker._pair.usable = lambda *args: False  # type: ignore[method-assign]
     per_frame = []
     tracker_module.find_in_roi = spy
     try:

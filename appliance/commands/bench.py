@@ -70,6 +70,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--profile", metavar="N", type=integer_at_least(1), nargs="?", const=30, default=0,
                         help="after the measured pairs, profile N more (default 30) steady-state steps and print "
                              "where the time goes")
+    parser.add_argument("--lean-steady-state", action="store_true",
+                        help="track with the lean steady-state pass (prototype, RecognitionSettings.lean_steady_state)")
 
 
 class RenderedScene:
@@ -192,20 +194,23 @@ class _Progress:
 
 def measure(frames: int = 300, size: int = 1024, robot_id: int = 1, speed_mm_s: float = 8.0, seed: int = 0,
             sim_seconds: float = 3.0, amplifier: bool = True, progress: Any = None, profile_pairs: int = 0,
-            amplifier_in_process: bool = False) -> Any:
+            amplifier_in_process: bool = False, lean_steady_state: bool = False) -> Any:
     """The whole benchmark: returns an :class:`appliance.benchmarking.BenchResult` (used by the CLI and
     ``benchmarks/pipeline_bench.py``)."""
     from appliance.benchmarking import run_bench, run_simulation
     from appliance.control import load_coils
+    from appliance.recognition import RecognitionSettings
 
     scene = RenderedScene(size, robot_id, speed_mm_s, seed)
     moment = scene.robot.magnetic_moment_am2
+    settings = RecognitionSettings(dark_level=scene.dark_level, lean_steady_state=lean_steady_state)
     if amplifier:
         with served_amplifier(len(load_coils().coils), in_process=amplifier_in_process) as path:
             result = run_bench(scene, frames, amplifier_url=path, moment_am2=moment, progress=progress,
-                               profile_pairs=profile_pairs)
+                               profile_pairs=profile_pairs, settings=settings)
     else:
-        result = run_bench(scene, frames, moment_am2=moment, progress=progress, profile_pairs=profile_pairs)
+        result = run_bench(scene, frames, moment_am2=moment, progress=progress, profile_pairs=profile_pairs,
+                           settings=settings)
     result.config.update({"robot": robot_id, "speed_mm_s": speed_mm_s, "seed": seed,
                           "amplifier_served_by": None if not amplifier else
                           "a thread of this process" if amplifier_in_process else "its own process"})
@@ -218,8 +223,10 @@ def measure(frames: int = 300, size: int = 1024, robot_id: int = 1, speed_mm_s: 
     result.notes.append("frames: rendered ahead, untimed; before each measured pair, the pair arrives in the host's "
                         "frame buffers by np.copyto (the memory floor, 8 MB of cache traffic per 1024^2 pair, as a "
                         "grabber's DMA), so every stage starts on the caches a new frame leaves")
-    result.notes.append("ROI: the steady-state search is one compiled call per view (attenuation, candidates, "
-                        "refinement, gate and weighted features), timed as segmentation; its features row is 0")
+    result.notes.append("ROI: the steady-state pair is one compiled call (both views' attenuation, candidates, "
+                        "refinement, gate and weighted features, and the reconstruction's front), timed as "
+                        "segmentation; its features row is 0, triangulation is the reconstruction's Python rest"
+                        + ("; lean steady-state pass ON (prototype)" if lean_steady_state else ""))
     result.notes.append("loop = frame available -> SET_CURRENTS written to the pty (ROI recognition, control, "
                         "allocation, the driver's limit check and encoding, the write call); the line's transfer "
                         "and the acknowledgement are not in it ('amplifier: acked' is the round trip)")
@@ -239,7 +246,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         result = measure(args.frames, args.size, args.robot, args.speed, args.seed, args.sim_seconds,
                          not args.no_amplifier, progress, profile_pairs=args.profile,
-                         amplifier_in_process=args.amplifier_in_process)
+                         amplifier_in_process=args.amplifier_in_process, lean_steady_state=args.lean_steady_state)
     finally:
         progress.end()
     print(format_table(result))

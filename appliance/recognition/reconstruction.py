@@ -42,6 +42,7 @@ from appliance.geometry import (
 from appliance.recognition import reconstruction_kernels as kernels
 from appliance.recognition.correspondence import CASE_A, CASE_B, Pairing, choose_pairing
 from appliance.recognition.features import Features2D
+from appliance.recognition.roi_search import _frozen
 from appliance.recognition.settings import RecognitionSettings
 
 log = logging.getLogger(__name__)
@@ -157,6 +158,16 @@ def _reconstruct_weighted(calibration: Calibration, feat_p: Features2D, feat_q: 
         sigma_q, head_q, prev0, prev1, prev2, previous is not None, s.ambiguity_px, s.min_plane_angle_deg,
         s.max_axis_disagreement_deg, s.min_view_elongation, s.axis_floor_rad, s.tip_sigma_px, s.tip_rim_fraction,
         out)
+    return reconstruct_from_front(calibration, feat_p, feat_q, settings, previous, status, out)
+
+
+def reconstruct_from_front(calibration: Calibration, feat_p: Features2D, feat_q: Features2D,
+                           settings: RecognitionSettings, previous: np.ndarray | None, status: int,
+                           out: np.ndarray) -> Reconstruction:
+    """The default method's decisions on what :func:`.reconstruction_kernels.weighted_front` returned
+    (``status``) and wrote (``out``, its layout) for these features: the tracker's steady state runs
+    the front inside its one compiled call per pair (:mod:`.steady_kernels`) and finishes here."""
+    s = settings
     if status == kernels.STATUS_PLANE_P or status == kernels.STATUS_PLANE_Q:
         name = "p" if status == kernels.STATUS_PLANE_P else "q"
         raise ValueError(f"view {name}: the two pixels coincide; no unique plane through them")
@@ -233,8 +244,8 @@ def _reconstruct_weighted(calibration: Calibration, feat_p: Features2D, feat_q: 
         tips = tips[::-1].copy() if flipped else tips.copy()
     else:
         placed = np.empty(kernels.TIPS_SIZE)
-        kernels.place_tips(G, centroid, d, final["p"].tips, plus_index["p"], final["q"].tips, plus_index["q"],
-                           feat_p.centroid, feat_q.centroid, placed)
+        kernels.place_tips(calibration.packed, centroid, d, final["p"].tips, plus_index["p"], final["q"].tips,
+                           plus_index["q"], feat_p.centroid, feat_q.centroid, placed)
         tips = placed[kernels.TIPS_POINTS:kernels.TIPS_POINTS + 6].reshape(2, 3)
     length, reproj = placed[kernels.TIPS_LENGTH:kernels.TIPS_REPROJECTION + 1].tolist()
     reprojection = reproj if math.isfinite(reproj) else None
@@ -251,10 +262,25 @@ def _reconstruct_weighted(calibration: Calibration, feat_p: Features2D, feat_q: 
 def _with_head(feat: Features2D, head_index: int | None) -> Features2D:
     """``feat.with_head(head_index)``, without rebuilding features that already have that head: tips from
     the axial profile (``reach``) are a function of the head's end alone, and rebuilding them (a new
-    Features2D per view) was a third of a steady-state frame's reconstruction time."""
-    if feat.reach is not None and feat.head_index == head_index:
+    Features2D per view) was a third of a steady-state frame's reconstruction time. Where they change,
+    the tips are :meth:`.Features2D.with_head`'s, in the same operations on plain floats, and the new
+    features are made without the frozen dataclass's ``__init__`` (a test compares both ways)."""
+    if feat.reach is None:
+        return feat.with_head(head_index)
+    if feat.head_index == head_index:
         return feat
-    return feat.with_head(head_index)
+    (c0, c1), (a0, a1) = feat.centroid.tolist(), feat.axis.tolist()
+    d0, d1 = _tip_distance(feat.reach[0], head_index == 0), _tip_distance(feat.reach[1], head_index == 1)
+    tips = np.array([[c0 + a0 * d0, c1 + a1 * d0], [c0 - a0 * d1, c1 - a1 * d1]])
+    return _frozen(Features2D, {**feat.__dict__, "tips": tips, "head_index": head_index})
+
+
+def _tip_distance(reach: dict[float, float], conical: bool) -> float:
+    """:meth:`.Features2D.tip_distance` of one end from its reaches (the same operations)."""
+    if conical:
+        cone = (reach[0.25] - reach[0.64]) / (0.8 - 0.5)
+        return reach[0.25] + 0.5 * cone
+    return reach[0.5]
 
 
 def _front_reasons(values: list[float], pairing: Pairing, plane_angle: float) -> list[str]:

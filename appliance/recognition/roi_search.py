@@ -83,7 +83,8 @@ _KERNEL_SETTINGS: dict[int, tuple[RecognitionSettings, tuple]] = {}
 def _frozen(cls: type[T], fields: dict[str, Any]) -> T:
     """An instance of the frozen dataclass ``cls`` holding ``fields`` (every field, by name), made without
     its generated ``__init__``: that one sets each field through ``object.__setattr__`` (~3 us for a
-    :class:`Blob` or a :class:`Features2D`, one of each per view and frame). Neither class has a
+    :class:`Blob` or a :class:`Features2D`, one of each per view and frame). None of the classes built
+    so (:class:`Blob`, :class:`Features2D`, :class:`Roi`, :class:`.ViewObservation`) has a
     ``__post_init__``; the tests compare every field with the ones ``__init__`` builds."""
     instance = object.__new__(cls)
     instance.__dict__.update(fields)
@@ -109,9 +110,18 @@ def _compiled(image: np.ndarray, log_bg: LogBackground, roi: Roi, settings: Reco
         return False
     if status == roi_kernels.NO_WEIGHT:
         raise ValueError("weights sum to zero or less")
+    return blob_and_features(out, weights, mask, x0, y0, None)
+
+
+def blob_and_features(out: np.ndarray, weights: np.ndarray, mask: np.ndarray, x0: int, y0: int,
+                      axis_sigma_rad: float | None) -> tuple[Blob, Features2D]:
+    """The :class:`Blob` and :class:`Features2D` of a found view from :func:`.roi_kernels.search_view`'s output
+    ``out`` (its first ``OUT_SIZE + 2 * levels`` numbers; the features' arrays are views of it), the chosen
+    blob's ``weights`` and ``mask``, and the ROI's origin ``x0, y0``. ``axis_sigma_rad``: the axis
+    uncertainty with the clutter term if already computed (by :mod:`.steady_kernels`), else None (here)."""
     (wy0, wy1, wx0, wx1, height, baseline, strength, cx, cy, edge, minor, clutter, count, used_sigma,
-     _, _, _, _, _, _, _, _, l1, l2, axis_sigma, head, ramp_plus, ramp_minus, *reaches) = out.tolist()
-    window = Roi(x0 + int(wx0), y0 + int(wy0), x0 + int(wx1), y0 + int(wy1))
+     _, _, _, _, _, _, _, _, l1, l2, axis_sigma, head, ramp_plus, ramp_minus, *reaches) = out[:_OUT_SIZE].tolist()
+    window = _frozen(Roi, {"x0": x0 + int(wx0), "y0": y0 + int(wy0), "x1": x0 + int(wx1), "y1": y0 + int(wy1)})
     pixel_count = int(count)
     # As segmentation._blob_from_component builds it.
     blob = _frozen(Blob, {
@@ -119,12 +129,13 @@ def _compiled(image: np.ndarray, log_bg: LogBackground, roi: Roi, settings: Reco
         "baseline": baseline, "sigma": used_sigma, "strength": strength,
         "centroid_px": (window.x0 + cx, window.y0 + cy), "touches_border": bool(edge),
         "width_px": body_width_px(minor, strength), "clutter": clutter})
+    if axis_sigma_rad is None:
+        axis_sigma_rad = math.hypot(axis_sigma, clutter_axis_sigma_rad(clutter, pixel_count, height, strength, l1, l2))
     # As features.weighted_features builds them; the arrays are views of this call's own output.
     feat = _frozen(Features2D, {
         "centroid": out[_CENTROID:_CENTROID + 2], "axis": out[_AXIS:_AXIS + 2], "eigenvalues": (l1, l2),
         "tips": out[_TIPS:_TIPS + 4].reshape(2, 2), "pixel_count": pixel_count,
         "head_index": None if head < 0 else int(head), "ramp_px": (ramp_plus, ramp_minus),
         "reach": (dict(zip(_LEVELS, reaches[:_N_LEVELS])), dict(zip(_LEVELS, reaches[_N_LEVELS:]))),
-        "axis_sigma_rad": math.hypot(axis_sigma, clutter_axis_sigma_rad(clutter, pixel_count, height, strength,
-                                                                        l1, l2))})
+        "axis_sigma_rad": axis_sigma_rad})
     return blob, feat

@@ -4,12 +4,16 @@
 and returns a :class:`Posture`. While the robot is tracked, each view is searched only inside a region
 of interest (ROI) around the constant-velocity prediction of the robot's image, and the background
 estimate is a slice of the one computed at the last full-frame detection, so a steady-state frame
-touches only a few thousand pixels per view (:func:`.roi_search.find_in_roi`: one compiled call per
-view for the blob and its features). When the ROI search fails (nothing plausible, the blob
-reaches the ROI's edge, or it is far from the prediction), the frame falls back to a full-frame
-detection, where the background is re-estimated and candidate blobs of the two views are paired by
-the epipolar constraint. A frame where that fails too, or whose object is not robot-like
-(:mod:`.plausibility`), is reported lost (``ok: false`` with a reason), never with a made-up pose.
+touches only a few thousand pixels per view. Both views' searches and the reconstruction's arithmetic
+are one compiled call per pair (:mod:`.steady_state`, :mod:`.steady_kernels`); a plain frame (no
+ambiguity, no clutter, the head identified, every check passed) has its posture built from that call's
+numbers, any other from the blobs and features as :func:`.roi_search.find_in_roi` and
+:func:`.reconstruction.reconstruct` give them, with the same result to the last bit. When the ROI
+search fails (nothing plausible, the blob reaches the ROI's edge, or it is far from the prediction),
+the frame falls back to a full-frame detection, where the background is re-estimated and candidate
+blobs of the two views are paired by the epipolar constraint. A frame where that fails too, or whose
+object is not robot-like (:mod:`.plausibility`), is reported lost (``ok: false`` with a reason), never
+with a made-up pose.
 """
 from __future__ import annotations
 
@@ -39,8 +43,8 @@ from appliance.recognition.plausibility import (
     off_its_images,
 )
 from appliance.recognition.posture import Posture, ViewObservation
-from appliance.recognition.reconstruction import Reconstruction, reconstruct
-from appliance.recognition.roi_search import find_in_roi
+from appliance.recognition.reconstruction import Reconstruction, reconstruct, reconstruct_from_front
+from appliance.recognition.roi_search import _frozen, find_in_roi
 from appliance.recognition.segmentation import (
     Blob,
     LogBackground,
@@ -48,6 +52,7 @@ from appliance.recognition.segmentation import (
     log_background,
 )
 from appliance.recognition.settings import RecognitionSettings
+from appliance.recognition.steady_state import SteadyPair
 
 log = logging.getLogger(__name__)
 
@@ -92,6 +97,10 @@ class PostureTracker:
         self.F = fundamental_matrix(calibration.p, calibration.q)
         #: Both views packed for the compiled kernels (the calibration is immutable).
         self._packed = calibration.packed
+        #: The steady state's one compiled call per pair, and its output for the last frame if that one was
+        #: found by it and remembered (what the lean pass starts from).
+        self._pair = SteadyPair(calibration, self.settings)
+        self._lean_from: np.ndarray | None = None
         self._log_bg: dict[str, LogBackground] = {}
         self._track: _Track | None = None
         self._last_search = "none"
@@ -103,6 +112,7 @@ class PostureTracker:
         """Forget the history and the cached backgrounds (the next frame is a full-frame detection)."""
         self._log_bg.clear()
         self._track = None
+        self._lean_from = None
 
     @property
     def tracking(self) -> bool:
@@ -119,7 +129,26 @@ class PostureTracker:
         """Recognise the robot in one biplane pair (raw detector intensities, robot darker than surroundings)."""
         images = {"p": self._checked(image_p, "p", frame), "q": self._checked(image_q, "q", frame)}
         timings = {"segmentation": 0.0, "features": 0.0, "correspondence": 0.0, "triangulation": 0.0}
-        found = self._search_rois(images, t, timings) if self._track is not None else None
+        front: tuple[int, np.ndarray] | None = None
+        found = None
+        paired = False
+        if self._track is not None:
+            paired = self._search_pair(images, t, timings)
+            if paired:
+                start = time.perf_counter_ns()
+                plain = self._pair.plain_posture(frame, t)
+                if plain is not None:
+                    # A plain frame: the posture the decisions below make, built from the call's numbers.
+                    timings["triangulation"] = (time.perf_counter_ns() - start) / 1e3
+                    plain.timings_us = timings
+                    self._remember(plain)
+                    self._lean_from = self._pair.out
+                    return plain
+                (blob_p, blob_q), (feat_p, feat_q), status, out = self._pair.objects()
+                found = {"p": blob_p, "q": blob_q}, {"p": feat_p, "q": feat_q}
+                front = (status, out) if status is not None else None
+            else:
+                found = self._search_rois(images, t, timings)
         if found is None:
             found, failure = self._search_full(images, timings)
             if found is None:
@@ -131,7 +160,10 @@ class PostureTracker:
         start = time.perf_counter_ns()
         previous = self._track.direction if self._track is not None else None
         try:
-            rec = reconstruct(self.calibration, self.F, feats["p"], feats["q"], self.settings, previous)
+            if front is not None:
+                rec = reconstruct_from_front(self.calibration, feats["p"], feats["q"], self.settings, previous, *front)
+            else:
+                rec = reconstruct(self.calibration, self.F, feats["p"], feats["q"], self.settings, previous)
         except ValueError as err:
             self._lose()
             posture = Posture.lost(frame, t, f"reconstruction failed: {err}")
@@ -169,6 +201,7 @@ class PostureTracker:
         posture = self._posture(frame, t, rec, blobs)
         posture.timings_us = timings
         self._remember(posture)
+        self._lean_from = self._pair.out if paired else None
         return posture
 
     # ----------------------------------------------------------------------------------- searches
@@ -184,6 +217,45 @@ class PostureTracker:
 
     def _features(self, blob: Blob) -> Features2D:
         return features(blob, self.settings)
+
+    def _search_pair(self, images: dict[str, np.ndarray], t: float, timings: dict[str, float]) -> bool:
+        """:meth:`_search_rois` and the reconstruction's front in one compiled call (:mod:`.steady_state`): True
+        if both views were found (the results are in ``self._pair``), False where that call does not apply or
+        a view is not plainly found (then :meth:`_search_rois`)."""
+        track = self._track
+        assert track is not None
+        bg_p, bg_q = self._log_bg.get("p"), self._log_bg.get("q")
+        image_p, image_q = images["p"], images["q"]
+        if not self._pair.usable(image_p, image_q, bg_p, bg_q):
+            return False
+        assert bg_p is not None and bg_q is not None
+        # The prediction as _search_rois makes it (the projection and the ROIs are in the call).
+        dt = t - track.t
+        (x, y, z), (vx, vy, vz) = track.centroid, track.velocity
+        half = 0.5 * (track.length_mm or 0.0) + 1.0
+        direction = track.direction.tolist() if track.direction is not None else (0.0, 0.0, 0.0)
+        outlines = track.view_outline_px or {}
+        # Per view, the noise sigma to reuse (None: measure it) and how many frames it will have served.
+        noise = self._roi_noise
+        known_p, known_q = noise.get("p"), noise.get("q")
+        sigma_p, served_p = ((known_p[1], known_p[2] + 1) if known_p is not None and known_p[0] is bg_p
+                             and known_p[2] < NOISE_REMEASURE_FRAMES else (None, 1))
+        sigma_q, served_q = ((known_q[1], known_q[2] + 1) if known_q is not None and known_q[0] is bg_q
+                             and known_q[2] < NOISE_REMEASURE_FRAMES else (None, 1))
+        start = time.perf_counter_ns()
+        lean_from = self._lean_from if self.settings.lean_steady_state else None
+        found = self._pair.search(image_p, image_q, bg_p, bg_q, (x + vx * dt, y + vy * dt, z + vz * dt), direction,
+                                  half, outlines.get("p"), outlines.get("q"), sigma_p, sigma_q,
+                                  direction if track.direction is not None else None, lean_from, track.centroid)
+        if not found:
+            return False
+        used_p, used_q = self._pair.sigmas()
+        noise["p"] = (bg_p, used_p, served_p)
+        noise["q"] = (bg_q, used_q, served_q)
+        # Both views' search and the reconstruction's front are one call: timed as segmentation.
+        timings["segmentation"] += (time.perf_counter_ns() - start) / 1e3
+        self._last_search = "roi"
+        return True
 
     def _search_rois(self, images: dict[str, np.ndarray], t: float, timings: dict[str, float]
                      ) -> tuple[dict[str, Blob], dict[str, Features2D]] | None:
@@ -337,8 +409,10 @@ class PostureTracker:
             (u0, v0), (u1, v1) = tips.tolist()
             norm = math.hypot(u0 - u1, v0 - v1)
             axis = np.array([(u0 - u1) / norm, (v0 - v1) / norm]) if norm > 0 else feat.axis
-            observations[name] = ViewObservation(feat.centroid, tips, axis, blobs[name].pixel_count,
-                                                 feat.eigenvalues, 0 if rec.head_identified else None)
+            # ViewObservation(feat.centroid, tips, axis, ...) without the frozen dataclass's __init__ (~2 us).
+            observations[name] = _frozen(ViewObservation, {
+                "centroid_px": feat.centroid, "tips_px": tips, "axis": axis, "pixel_count": blobs[name].pixel_count,
+                "eigenvalues": feat.eigenvalues, "head_index": 0 if rec.head_identified else None})
         reasons = list(rec.reasons)
         ambiguous = rec.ambiguous
         cluttered = [name for name in VIEWS if blobs[name].clutter > self.settings.max_clutter]
@@ -379,6 +453,7 @@ class PostureTracker:
                              velocity, view_outline_px=outline)
 
     def _lose(self) -> None:
+        self._lean_from = None
         if self._track is None:
             return
         self._track.lost_frames += 1

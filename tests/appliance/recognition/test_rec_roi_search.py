@@ -12,6 +12,7 @@ from appliance.geometry import Calibration, View
 from appliance.recognition import PostureTracker, RecognitionSettings, roi_search
 from appliance.recognition import tracker as tracker_module
 from appliance.recognition.segmentation import Blob, Roi, log_background, segment
+from appliance.recognition.steady_state import SteadyPair
 from appliance.robots import load_robots
 from drivers.loopback.scene_builders import S_BEND_CENTRELINE_MM, smooth_centreline
 from drivers.loopback.xray_render import (
@@ -141,8 +142,9 @@ def test_find_in_roi_takes_the_general_path_for_other_inputs(views: dict[str, ob
     assert found is not None and found[1].reach is None
 
 
+@pytest.mark.parametrize("one_call_per_pair", [True, False])
 def test_tracker_reuses_a_views_noise_sigma_and_measures_it_again_periodically(
-        monkeypatch: pytest.MonkeyPatch) -> None:
+        monkeypatch: pytest.MonkeyPatch, one_call_per_pair: bool) -> None:
     true_views = biplane_views(image_size=(256, 224), fov_mm=(80.0, 70.0))
     calibration = Calibration.from_views(*(View(n, v.K, v.dist, v.R, v.t, v.image_size)
                                            for n, v in sorted(true_views.items())))
@@ -155,9 +157,23 @@ def test_tracker_reuses_a_views_noise_sigma_and_measures_it_again_periodically(
         passed.append(("p" if len(passed) % 2 == 0 else "q", sigma, found[0].sigma if found else math.nan))
         return found
 
+    real_pair = SteadyPair.search
+
+    def pair_spy(self, image_p, image_q, bg_p, bg_q, centre, direction, half, outline_p, outline_q,  # type: ignore[no-untyped-def]
+                 sigma_p, sigma_q, *rest):
+        found = real_pair(self, image_p, image_q, bg_p, bg_q, centre, direction, half, outline_p, outline_q,
+                          sigma_p, sigma_q, *rest)
+        assert found
+        used_p, used_q = self.sigmas()
+        passed.extend([("p", sigma_p, used_p), ("q", sigma_q, used_q)])
+        return found
+
     monkeypatch.setattr(tracker_module, "find_in_roi", spy)
+    monkeypatch.setattr(SteadyPair, "search", pair_spy)
     monkeypatch.setattr(tracker_module, "NOISE_REMEASURE_FRAMES", 3)
     tracker = PostureTracker(calibration)
+    if not one_call_per_pair:
+        monkeypatch.setattr(tracker._pair, "usable", lambda *args: False)
     for n in range(8):
         t = 0.04 * n
         pose = RobotPose(np.array([-4.0 + 10.0 * t, 2.0, 3.0]), np.array([1.0, 0.3, 0.4]))

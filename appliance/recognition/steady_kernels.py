@@ -1,0 +1,715 @@
+"""The tracker's steady-state frame pair as one compiled call: both views' ROI search and the reconstruction's front.
+
+A tracked pair used to be five kernel calls from Python (the prediction's projection, each view's
+:func:`.roi_kernels.search_view`, :func:`.reconstruction_kernels.weighted_front`) with the ROIs, the
+gate and the features' axis uncertainty computed in Python between them; the calls' argument
+handling (30 arguments a view) and the Python between them cost about as much as the pixel work
+around it (issue 8). :func:`search_pair` runs the same chain in one call, with the same arithmetic
+in the same order (the tests compare every field with the per-view path):
+
+* the predicted centroid and ends projected into both views (:func:`.geometry_kernels.project_segment`),
+  moved with the last frame's 2D outline where there is one, and each view's ROI around them
+  (:meth:`.segmentation.Roi.around_coordinates`);
+* each view's :func:`.roi_kernels.search_view`, and its axis uncertainty with the clutter term
+  (:func:`.features.clutter_axis_sigma_rad`);
+* :func:`.reconstruction_kernels.weighted_front` on the two views' features.
+
+Every number goes in through one float array (layout ``IN_*``) and comes out through one (``OUT_*``).
+Where a view's search is not plainly found (no ROI, nothing near the prediction, a gate test too
+close to call, weights summing to nothing) the call says so and the caller takes the per-view path,
+which decides exactly as before.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from appliance.compiled import kernel, register_warm_up
+from appliance.geometry_kernels import VIEW_SIZE, project_point, project_segment
+from appliance.recognition import reconstruction_kernels, roi_kernels, view_kernels
+
+#: Status of :func:`search_pair`.
+PAIR_FOUND = 0  # both views found; the front's status is at OUT_FRONT_STATUS
+PAIR_PER_VIEW = 1  # a view was not plainly found: take the per-view path
+
+#: Layout of the input array. First what changes from frame to frame (``IN_FRAME_SIZE`` numbers, written
+#: in one assignment): the prediction (``IN_CENTRE``, ``IN_DIRECTION`` unit or zero, ``IN_HALF`` the half
+#: length + 1 mm), the last frame's 3D centroid (the lean pass moves its 2D bodies by its motion), the
+#: previous direction and 1 if there is one, then per view (``IN_VIEW + view * IN_VIEW_SIZE``) the numbers
+#: of the layout ``V_*``. Then the margin (px) and the reconstruction's settings.
+IN_CENTRE = 0
+IN_DIRECTION = 3
+IN_HALF = 6
+IN_LAST_CENTRE = 7
+IN_PREVIOUS = 10
+IN_VIEW = 14
+V_HAS_OUTLINE = 0  # 1 if the last frame's 2D outline is known
+V_OUTLINE = 1  # 7: its centroid u, v, ends u0, v0, u1, v1 and the body's half width
+V_KNOWN_SIGMA = 8  # the noise sigma to reuse (0: measure it)
+V_LEAN = 9  # 1: try the lean pass from the previous pair's output (see lean_view)
+V_FY = 10  # the coarse background's factors
+V_FX = 11
+V_HEIGHT = 12  # the image's shape
+V_WIDTH = 13
+IN_VIEW_SIZE = 14
+IN_FRAME_SIZE = IN_VIEW + 2 * IN_VIEW_SIZE
+IN_MARGIN = IN_FRAME_SIZE
+IN_FRONT = IN_MARGIN + 1  # the reconstruction's settings, in weighted_front's order
+FRONT_SETTINGS = 7  # ambiguity_px ... tip_rim_fraction
+#: The plain frame's checks (see _finish): max_clutter, max_length_over_width, min_path_attenuation_per_mm,
+#: max_reprojection_px, head_foreshortening, then per view its source (mm) and focal length (px) as
+#: plausibility has them.
+IN_FINISH = IN_FRONT + FRONT_SETTINGS
+FINISH_SETTINGS = 5
+IN_SOURCES = IN_FINISH + FINISH_SETTINGS
+IN_SIZE = IN_SOURCES + 8
+
+#: Layout of the output array: per view (``OUT_VIEW + view * OUT_VIEW_SIZE``) search_view's output
+#: (``roi_kernels`` layout, ``SEARCH_SIZE`` numbers), then the view's ROI ``x0, y0, x1, y1`` and its
+#: axis uncertainty (rad, with the clutter term); then the front's output and status.
+OUT_VIEW = 0
+SEARCH_SIZE = roi_kernels.OUT_SIZE + 2 * 5
+R_ROI = SEARCH_SIZE
+R_AXIS_SIGMA = SEARCH_SIZE + 4
+R_LEAN = SEARCH_SIZE + 5  # 1 if the lean pass found this view, 0 if search_view did
+R_EXTENT = SEARCH_SIZE + 6  # 3: the body's (mask's) s range and largest |t| about the centroid, along the axis
+OUT_VIEW_SIZE = SEARCH_SIZE + 9
+OUT_FRONT = 2 * OUT_VIEW_SIZE
+OUT_FRONT_STATUS = OUT_FRONT + reconstruction_kernels.OUT_SIZE
+#: The plain frame's posture (see _finish): 1 if plain, then its centroid, direction, tips (head first),
+#: length, reprojection (NaN: none) and per view the 2D tips in the same order.
+OUT_POSTURE = OUT_FRONT_STATUS + 1
+P_PLAIN = 0
+P_CENTROID = 1
+P_DIRECTION = 4
+P_TIPS = 7
+P_LENGTH = 13
+P_REPROJECTION = 14
+P_VIEW_TIPS = 15
+POSTURE_SIZE = 23
+OUT_SIZE = OUT_POSTURE + POSTURE_SIZE
+
+
+@kernel
+def clutter_axis_sigma(clutter, pixel_count, peak, strength, l1, l2):  # pragma: no cover - compiled
+    """features.clutter_axis_sigma_rad, the same operations (Python's ``max`` with a NaN first argument)."""
+    spread = l1 - l2
+    if not clutter > 0.0 or not strength > 0.0 or not spread > 0.0:
+        return 0.0
+    product = l1 * l2
+    floor = 0.0 if 0.0 > product else product  # noqa: FURB136 - Python's max(product, 0.0), NaN included
+    worst = clutter * peak * pixel_count * 0.75 * math.sqrt(floor) / (strength * spread)
+    return worst / 3.0
+
+
+@kernel
+def _roi(pu, pv, eu0, ev0, eu1, ev1, margin, h, w):  # pragma: no cover - compiled
+    """Roi.around_coordinates on the three points: ``(ok, x0, y0, x1, y1)``."""
+    if not (math.isfinite(pu) and math.isfinite(eu0) and math.isfinite(eu1) and math.isfinite(pv)
+            and math.isfinite(ev0) and math.isfinite(ev1)):
+        return False, 0, 0, 0, 0
+    # Python's min / max of three floats (finite here): the first extreme in order.
+    lo_u = pu
+    if eu0 < lo_u:
+        lo_u = eu0
+    if eu1 < lo_u:
+        lo_u = eu1
+    hi_u = pu
+    if eu0 > hi_u:
+        hi_u = eu0
+    if eu1 > hi_u:
+        hi_u = eu1
+    lo_v = pv
+    if ev0 < lo_v:
+        lo_v = ev0
+    if ev1 < lo_v:
+        lo_v = ev1
+    hi_v = pv
+    if ev0 > hi_v:
+        hi_v = ev0
+    if ev1 > hi_v:
+        hi_v = ev1
+    x0 = max(0, math.floor(lo_u - margin))
+    y0 = max(0, math.floor(lo_v - margin))
+    x1 = min(w, math.ceil(hi_u + margin) + 1)
+    y1 = min(h, math.ceil(hi_v + margin) + 1)
+    if x1 - x0 < 4 or y1 - y0 < 4:
+        return False, 0, 0, 0, 0
+    return True, x0, y0, x1, y1
+
+
+# ------------------------------------------------------------------------------------- the lean pass
+#: The lean pass (prototype, ``RecognitionSettings.lean_steady_state``): margin (px) of its capsule around
+#: the last frame's body moved by the predicted motion (motion error and rotation between two frames) ...
+LEAN_MARGIN_PX = 4.0
+#: ... and how far beyond it the smoothed attenuation is computed, along and across the axis (px): the
+#: support is 3 px beyond the body and the background's fill 3 px beyond that; the side baselines lie
+#: 4 and 6 px beside the body.
+LEAN_GROW_ALONG_PX = 7.0
+LEAN_GROW_ACROSS_PX = 5.0
+#: Its checks, against the last frame's body (else the full ROI search): the background under the body
+#: varies by at most this fraction of its contrast (no vessel under it) ...
+LEAN_MAX_CLUTTER = 0.08
+#: ... the body's length and width change by at most these many px, its pixels and contrast by this fraction.
+LEAN_LENGTH_PX = 3.0
+LEAN_WIDTH_PX = 1.5
+LEAN_CHANGE = 0.15
+
+
+@kernel
+def _capsule_rows(h, w, ox, oy, ax, ay, s0, s1, tmax, x_lo, x_hi):  # pragma: no cover - compiled
+    """Per row ``y`` of an ``h x w`` window, the pixels ``[x_lo[y], x_hi[y])`` whose centres have
+    ``s = (x - ox) ax + (y - oy) ay`` in ``[s0, s1]`` and ``|t| = |-(x - ox) ay + (y - oy) ax| <= tmax``
+    (``ax, ay`` a unit vector). Each slab's bounds are linear in ``y``: multiplications by the two
+    reciprocals computed once, no division per row."""
+    use_s, use_t = abs(ax) > 1e-9, abs(ay) > 1e-9
+    ia = 1.0 / ax if use_s else 0.0
+    ib = 1.0 / ay if use_t else 0.0
+    for y in range(h):
+        dy = y - oy
+        lo, hi = 0.0, w - 1.0
+        # s slab: ax (x - ox) in [s0 - dy ay, s1 - dy ay]
+        a, b = s0 - dy * ay, s1 - dy * ay
+        if use_s:
+            u0, u1 = ox + a * ia, ox + b * ia
+            if u0 > u1:
+                u0, u1 = u1, u0
+            lo, hi = max(lo, u0), min(hi, u1)
+        elif not (a <= 0.0 <= b):
+            hi = -1.0
+        # t slab: ay (x - ox) in [dy ax - tmax, dy ax + tmax]
+        a, b = dy * ax - tmax, dy * ax + tmax
+        if use_t:
+            u0, u1 = ox + a * ib, ox + b * ib
+            if u0 > u1:
+                u0, u1 = u1, u0
+            lo, hi = max(lo, u0), min(hi, u1)
+        elif not (a <= 0.0 <= b):
+            hi = -1.0
+        if hi < lo:
+            x_lo[y], x_hi[y] = 0, 0
+        else:
+            x_lo[y], x_hi[y] = max(math.ceil(lo), 0), min(math.floor(hi) + 1, w)
+
+
+@kernel
+def _features_tail(out, weights, cap, sigma, levels, head_ramp_ratio, head_min_ramp_px, wx, wy):  # pragma: no cover
+    """The weighted features of ``weights`` (whose origin is image pixel ``wx, wy``) into ``out`` (search_view's
+    layout), as :func:`.roi_kernels.search_view` computes them for its chosen blob; False if the weights
+    sum to nothing."""
+    status, f = view_kernels.weighted_view_features(weights, cap, sigma, levels)
+    if not status:
+        return False
+    n = levels.size
+    cx, cy, l1, l2, vx, vy = f[0], f[1], f[2], f[3], f[4], f[5]
+    R = roi_kernels.REACH
+    for k in range(2 * n):
+        out[R + k] = f[7 + k]
+    ramp_plus = out[R] - out[R + n - 1]
+    ramp_minus = out[R + n] - out[R + 2 * n - 1]
+    head = -1
+    for end in range(2):
+        long_ = ramp_plus if end == 0 else ramp_minus
+        short = ramp_minus if end == 0 else ramp_plus
+        floor_short = 1e-6 if 1e-6 > short else short  # noqa: FURB136 - Python's max(short, 1e-6)
+        if long_ >= head_ramp_ratio * floor_short and long_ - short >= head_min_ramp_px:
+            head = end
+    px, py = cx + wx, cy + wy
+    d0 = roi_kernels._tip_distance(out, R, head == 0)
+    d1 = roi_kernels._tip_distance(out, R + n, head == 1)
+    out[roi_kernels.CENTROID], out[roi_kernels.CENTROID + 1] = px, py
+    out[roi_kernels.AXIS], out[roi_kernels.AXIS + 1] = vx, vy
+    t = roi_kernels.TIPS
+    out[t], out[t + 1] = px + vx * d0, py + vy * d0
+    out[t + 2], out[t + 3] = px - vx * d1, py - vy * d1
+    out[roi_kernels.EIGENVALUES], out[roi_kernels.EIGENVALUES + 1] = l1, l2
+    out[roi_kernels.AXIS_SIGMA] = f[6]
+    out[roi_kernels.HEAD] = head
+    out[roi_kernels.RAMPS], out[roi_kernels.RAMPS + 1] = ramp_plus, ramp_minus
+    return True
+
+
+@kernel
+def _extent(out, o, mask, mx, my):  # pragma: no cover - compiled
+    """The body's (``mask``, origin image pixel ``mx, my``) s range and largest |t| about the features'
+    centroid along their axis, into ``out[o + R_EXTENT:]`` (what the next frame's lean pass starts from)."""
+    cx, cy = out[o + roi_kernels.CENTROID], out[o + roi_kernels.CENTROID + 1]
+    vx, vy = out[o + roi_kernels.AXIS], out[o + roi_kernels.AXIS + 1]
+    s_lo, s_hi, t_max = np.inf, -np.inf, 0.0
+    h, w = mask.shape
+    for y in range(h):
+        for x in range(w):
+            if mask[y, x]:
+                dx, dy = (mx + x) - cx, (my + y) - cy
+                s_ = dx * vx + dy * vy
+                t_ = abs(-dx * vy + dy * vx)
+                s_lo, s_hi, t_max = min(s_lo, s_), max(s_hi, s_), max(t_max, t_)
+    out[o + R_EXTENT], out[o + R_EXTENT + 1], out[o + R_EXTENT + 2] = s_lo, s_hi, t_max
+
+
+@kernel
+def lean_view(image, coarse, fy, fx, log_table, g, prev, po, qu, qv, sigma, p, near_hw, levels, cap_fraction,
+              head_ramp_ratio, head_min_ramp_px, gate_px, out, o):  # pragma: no cover - compiled
+    """The lean steady-state pass of one view (prototype): the body found again around where the last
+    frame's was, without candidates, labelling, the ring median or flood fills.
+
+    The last frame's body (``prev[po:]``, this module's view layout: its axis, extent about its centroid,
+    contrast, pixel count, baseline) moved to ``qu, qv`` (its centroid moved by the predicted motion)
+    gives a capsule; the attenuation and its 5x5 smoothing are computed on a capsule grown by
+    :data:`LEAN_GROW_ALONG_PX` and :data:`LEAN_GROW_ACROSS_PX` only (row by row). The body is what
+    stands above the attenuation beside it (:func:`.view_kernels._side_baseline`) by the refinement's level, inside the capsule; its support,
+    the background interpolated under it (:func:`.view_kernels._fill_values`), the weights near it and
+    the features follow as in the refinement and :func:`_features_tail`. The baseline (the ring median)
+    is the last frame's. Returns ``(found, weights, mask, x0, y0)``; not found where a check fails (the
+    body reaches the capsule's end or side, its length, width, pixels or contrast changed, the
+    background under it varies: a vessel under the body, a body that changed), and the caller runs the
+    full ROI search. ``out[o:]`` gets search_view's layout with the window relative to ``x0, y0``."""
+    empty_w = np.zeros((0, 0), dtype=np.float32)
+    empty_m = np.zeros((0, 0), dtype=np.uint8)
+    A, E, Rf = roi_kernels.AXIS, R_EXTENT, roi_kernels.REFINED
+    ax, ay = prev[po + A], prev[po + A + 1]
+    s_lo, s_hi, t_max = prev[po + E], prev[po + E + 1], prev[po + E + 2]
+    last_height, baseline, last_count = prev[po + Rf + 4], prev[po + Rf + 5], prev[po + Rf + 12]
+    if not (math.isfinite(ax) and math.isfinite(ay) and math.isfinite(s_lo) and math.isfinite(s_hi)
+            and math.isfinite(qu) and math.isfinite(qv) and last_count > 0 and last_height > 0 and sigma > 0):
+        return False, empty_w, empty_m, 0, 0
+    dilate_px, support_sigma, support_fraction = int(p[6]), p[7], p[8]
+    smooth_gain, fill_rows, fill_cols = p[9], int(p[10]), int(p[11])
+    pad = dilate_px + 1.0
+    bs0, bs1, bt = s_lo - LEAN_MARGIN_PX, s_hi + LEAN_MARGIN_PX, t_max + LEAN_MARGIN_PX
+    gs_s, gs_t = LEAN_GROW_ALONG_PX, LEAN_GROW_ACROSS_PX
+    ga_s, ga_t = gs_s + 3.0, gs_t + 3.0  # 3 >= 2 sqrt(2): the smoothed capsule's 5x5 neighbourhoods lie in it
+    H, W = image.shape
+    lo_x, hi_x, lo_y, hi_y = np.inf, -np.inf, np.inf, -np.inf
+    for k in range(4):
+        s_ = bs0 - ga_s if k < 2 else bs1 + ga_s
+        t_ = -(bt + ga_t) if k % 2 == 0 else bt + ga_t
+        gx, gy = qu + s_ * ax - t_ * ay, qv + s_ * ay + t_ * ax
+        lo_x, hi_x, lo_y, hi_y = min(lo_x, gx), max(hi_x, gx), min(lo_y, gy), max(hi_y, gy)
+    x0, y0 = math.floor(lo_x), math.floor(lo_y)
+    x1, y1 = math.ceil(hi_x) + 1, math.ceil(hi_y) + 1
+    if x0 < 0 or y0 < 0 or x1 > W or y1 > H:
+        return False, empty_w, empty_m, 0, 0  # near the detector's edge: the ROI search knows what to do
+    hh, ww = y1 - y0, x1 - x0
+    ox, oy = qu - x0, qv - y0
+    xa0 = np.empty(hh, dtype=np.int64)
+    xa1 = np.empty(hh, dtype=np.int64)
+    xs0 = np.empty(hh, dtype=np.int64)
+    xs1 = np.empty(hh, dtype=np.int64)
+    xb0 = np.empty(hh, dtype=np.int64)
+    xb1 = np.empty(hh, dtype=np.int64)
+    _capsule_rows(hh, ww, ox, oy, ax, ay, bs0 - ga_s, bs1 + ga_s, bt + ga_t, xa0, xa1)
+    _capsule_rows(hh, ww, ox, oy, ax, ay, bs0 - gs_s, bs1 + gs_s, bt + gs_t, xs0, xs1)
+    _capsule_rows(hh, ww, ox, oy, ax, ay, bs0, bs1, bt, xb0, xb1)
+    # Attenuation on the grown capsule: attenuation_from_coarse's arithmetic, pixel for pixel.
+    hs, ws = coarse.shape
+    ix0 = np.empty(ww, dtype=np.int64)
+    ix1 = np.empty(ww, dtype=np.int64)
+    wxs = np.empty(ww, dtype=np.float32)
+    for x in range(ww):
+        s_ = min(max((x + x0 + 0.5) / fx - 0.5, 0.0), ws - 1.0)
+        i = min(int(s_), max(ws - 2, 0))
+        ix0[x] = i
+        ix1[x] = min(i + 1, ws - 1)
+        wxs[x] = np.float32(s_ - i)
+    a = np.zeros((hh, ww), dtype=np.float32)
+    row = np.empty(ws, dtype=np.float32)
+    one = np.float32(1.0)
+    clo, chi = ix0[0], ix1[ww - 1] + 1
+    for y in range(hh):
+        if xa1[y] <= xa0[y]:
+            continue
+        s_ = min(max((y + y0 + 0.5) / fy - 0.5, 0.0), hs - 1.0)
+        i = min(int(s_), max(hs - 2, 0))
+        j = min(i + 1, hs - 1)
+        wy = np.float32(s_ - i)
+        for c in range(clo, chi):
+            row[c] = coarse[i, c] * (one - wy) + coarse[j, c] * wy
+        src, arow = image[y + y0], a[y]
+        for x in range(xa0[y], xa1[y]):
+            bg = row[ix0[x]] * (one - wxs[x]) + row[ix1[x]] * wxs[x]
+            arow[x] = bg - log_table[src[x + x0]]
+    # The 5x5 Gaussian on the smoothed capsule (rows, then columns, as gaussian5 sums them).
+    g0, g1, g2, g3, g4 = g[0], g[1], g[2], g[3], g[4]
+    tmp = np.zeros((hh, ww), dtype=np.float32)
+    for y in range(hh):
+        arow, trow = a[y], tmp[y]
+        for x in range(xa0[y] + 2, xa1[y] - 2):
+            trow[x] = g0 * arow[x - 2] + g1 * arow[x - 1] + g2 * arow[x] + g3 * arow[x + 1] + g4 * arow[x + 2]
+    smooth = np.zeros((hh, ww), dtype=np.float32)
+    for y in range(2, hh - 2):
+        r0, r1, r2, r3, r4, srow = tmp[y - 2], tmp[y - 1], tmp[y], tmp[y + 1], tmp[y + 2], smooth[y]
+        for x in range(xs0[y], xs1[y]):
+            srow[x] = g0 * r0[x] + g1 * r1[x] + g2 * r2[x] + g3 * r3[x] + g4 * r4[x]
+    # The body: above the attenuation beside it by the refinement's level, inside the capsule.
+    peak = -np.inf
+    for y in range(hh):
+        srow = smooth[y]
+        for x in range(xb0[y], xb1[y]):
+            peak = max(peak, float(srow[x]))
+    height = peak - baseline
+    if not (abs(height - last_height) <= LEAN_CHANGE * last_height):
+        return False, empty_w, empty_m, 0, 0
+    level = max(support_sigma * sigma * smooth_gain, support_fraction * height)
+    lvl32 = np.float32(level)
+    nside = math.floor(bs1 - bs0) + 1
+    side = view_kernels._side_baseline(smooth, 0, 0, hh, ww, ox, oy, ax, ay, bs0, nside, t_max + pad + 1.0)
+    mask = np.zeros((hh, ww), dtype=np.uint8)
+    cap_px = hh * ww
+    mys = np.empty(cap_px, dtype=np.int64)
+    mxs = np.empty(cap_px, dtype=np.int64)
+    count = 0
+    in_lo, in_hi, in_t = np.inf, -np.inf, 0.0
+    for y in range(hh):
+        gy = y - oy
+        srow, mrow = smooth[y], mask[y]
+        for x in range(xb0[y], xb1[y]):
+            gx = x - ox
+            s_ = gx * ax + gy * ay
+            k = min(max(int(s_ - bs0), 0), nside - 1)
+            if (srow[x] - side[k]) > lvl32:
+                mrow[x] = 1
+                mys[count], mxs[count] = y, x
+                count += 1
+                t_ = abs(-gx * ay + gy * ax)
+                in_lo, in_hi, in_t = min(in_lo, s_), max(in_hi, s_), max(in_t, t_)
+    if count == 0 or abs(count - last_count) > LEAN_CHANGE * last_count:
+        return False, empty_w, empty_m, 0, 0
+    if (in_lo < bs0 + 1.0 or in_hi > bs1 - 1.0 or in_t > bt - 1.0
+            or abs((in_hi - in_lo) - (s_hi - s_lo)) > LEAN_LENGTH_PX or abs(in_t - t_max) > LEAN_WIDTH_PX):
+        return False, empty_w, empty_m, 0, 0
+    # The support (a rectangle around the body along its axis) and the background interpolated under it.
+    lo_s_, hi_s_, hi_t = in_lo - pad, in_hi + pad, in_t + pad
+    gxs = np.empty(4)
+    gys = np.empty(4)
+    for k in range(4):
+        s_ = lo_s_ if k < 2 else hi_s_
+        t_ = -hi_t if k % 2 == 0 else hi_t
+        gxs[k] = s_ * ax - t_ * ay + ox
+        gys[k] = s_ * ay + t_ * ax + oy
+    sy0, sy1 = max(math.floor(gys.min()) - 1, 0), min(math.ceil(gys.max()) + 2, hh)
+    sx0, sx1 = max(math.floor(gxs.min()) - 1, 0), min(math.ceil(gxs.max()) + 2, ww)
+    support = np.zeros((max(sy1 - sy0, 0), max(sx1 - sx0, 0)), dtype=np.uint8)
+    for y in range(sy0, sy1):
+        gy = y - oy
+        for x in range(sx0, sx1):
+            gx = x - ox
+            s_, t_ = gx * ax + gy * ay, -gx * ay + gy * ax
+            if s_ >= lo_s_ and s_ <= hi_s_ and abs(t_) <= hi_t:
+                support[y - sy0, x - sx0] = 1
+    background = np.zeros((hh, ww), dtype=np.float32)
+    view_kernels._fill_values(smooth, 0, 0, hh, ww, support, sy0, sy1, sx0, sx1, fill_rows, fill_cols,
+                              abs(ax) < abs(ay), background)
+    # The weights near the body, their window, and how much the background under the body varies.
+    near, ny0, nx0 = view_kernels._dilated_box(mys, mxs, count, near_hw, hh, ww)
+    nh, nw = near.shape
+    ky0, ky1, kx0, kx1 = hh, -1, ww, -1
+    bmin, bmax = np.inf, -np.inf
+    for y in range(nh):
+        for x in range(nw):
+            yy, xx = ny0 + y, nx0 + x
+            inside = (near[y, x] and yy >= sy0 and yy < sy1 and xx >= sx0 and xx < sx1
+                      and support[yy - sy0, xx - sx0])
+            near[y, x] = 1 if inside else 0
+            if inside:
+                ky0, ky1, kx0, kx1 = min(ky0, yy), max(ky1, yy), min(kx0, xx), max(kx1, xx)
+                b = float(background[yy, xx])
+                bmin, bmax = min(bmin, b), max(bmax, b)
+    if ky1 < 0:
+        return False, empty_w, empty_m, 0, 0
+    clutter = (bmax - bmin) / height
+    if not clutter <= LEAN_MAX_CLUTTER:
+        return False, empty_w, empty_m, 0, 0
+    for i in range(count):
+        ky0, ky1, kx0, kx1 = min(ky0, mys[i]), max(ky1, mys[i]), min(kx0, mxs[i]), max(kx1, mxs[i])
+    ky1 += 1
+    kx1 += 1
+    weights = np.zeros((ky1 - ky0, kx1 - kx0), dtype=np.float32)
+    for y in range(nh):
+        for x in range(nw):
+            if near[y, x]:
+                yy, xx = ny0 + y, nx0 + x
+                weights[yy - ky0, xx - kx0] = a[yy, xx] - background[yy, xx]
+    body = mask[ky0:ky1, kx0:kx1].copy()
+    m00, m10, m01, mu20, mu02, mu11 = view_kernels.moments(weights)
+    if not m00 > 0.0:
+        return False, empty_w, empty_m, 0, 0
+    _, minor, _, _ = view_kernels._principal(mu20, mu02, mu11, 1)
+    sc = (float(ky0), float(ky1), float(kx0), float(kx1), height, baseline, m00, m10 / m00, m01 / m00, 0.0, minor,
+          clutter, float(count))
+    for i in range(roi_kernels.REFINED_SIZE):
+        out[o + Rf + i] = sc[i]
+    out[o + roi_kernels.SIGMA] = sigma
+    cap = cap_fraction * height if cap_fraction < 1.0 else np.inf
+    if not _features_tail(out[o:o + SEARCH_SIZE], weights, cap, sigma, levels, head_ramp_ratio, head_min_ramp_px,
+                          x0 + kx0, y0 + ky0):
+        return False, empty_w, empty_m, 0, 0
+    if not math.hypot(out[o + roi_kernels.CENTROID] - qu, out[o + roi_kernels.CENTROID + 1] - qv) <= gate_px:
+        return False, empty_w, empty_m, 0, 0
+    return True, weights, body, x0, y0
+
+
+# ------------------------------------------------------------------------------------- the plain frame
+@kernel
+def _robot_like(out, inp, centre, d, length):  # pragma: no cover - compiled
+    """plausibility.not_robot_like finding nothing, in its operations: the length over the mean width, and the
+    attenuation per mm of path in the view that sees the axis most side-on."""
+    widths = np.empty(2)
+    rays = np.empty((2, 4))
+    for view in range(2):
+        o = OUT_VIEW + view * OUT_VIEW_SIZE
+        r = roi_kernels.REFINED
+        ratio = out[o + r + 10] / out[o + r + 6]
+        width_px = 4.0 * math.sqrt(0.0625 if 0.0625 > ratio else ratio)  # noqa: FURB136 - Python's max(ratio, ...)
+        k = IN_SOURCES + 4 * view
+        rx, ry, rz = centre[0] - inp[k], centre[1] - inp[k + 1], centre[2] - inp[k + 2]
+        distance = math.sqrt(rx * rx + ry * ry + rz * rz)
+        rays[view, 0], rays[view, 1], rays[view, 2], rays[view, 3] = rx, ry, rz, distance
+        widths[view] = width_px * distance / inp[k + 3]
+    width = 0.5 * (widths[0] + widths[1])
+    if length > inp[IN_FINISH + 1] * width:
+        return False
+    side, side_sine = 0, -1.0
+    for view in range(2):
+        cosine = abs(rays[view, 0] * d[0] + rays[view, 1] * d[1] + rays[view, 2] * d[2]) / rays[view, 3]
+        c2 = 1.0 - cosine * cosine
+        sine = math.sqrt(c2 if c2 > 0.0 else 0.0)  # Python's max(0.0, c2)
+        if sine > side_sine:
+            side, side_sine = view, sine
+    o = OUT_VIEW + side * OUT_VIEW_SIZE
+    sine_floor = 1e-3 if 1e-3 > side_sine else side_sine  # noqa: FURB136 - Python's max(side_sine, 1e-3)
+    width_floor = 1e-6 if 1e-6 > widths[side] else widths[side]  # noqa: FURB136
+    mu = out[o + roi_kernels.REFINED + 4] * sine_floor / width_floor
+    return not mu < inp[IN_FINISH + 2]
+
+
+@kernel
+def _finish(out, inp, G):  # pragma: no cover - compiled
+    """The posture of a plain frame into ``out[OUT_POSTURE:]``, as reconstruction.reconstruct_from_front, the
+    tracker's checks and plausibility make it, where the frame is plain: the front found no ambiguity and gave
+    no reason, neither view's background under the body varies (clutter), no window reaches a detector
+    edge, the head is identified by the views' votes, the rod is robot-like and reprojects onto its images.
+    Anything else is left to Python (``P_PLAIN`` 0). (The checks that go through Python's ``math.degrees``
+    and ``math.hypot``, whose last bits numba's may not match, stay in Python.)"""
+    P = OUT_POSTURE
+    out[P + P_PLAIN] = 0.0
+    f = OUT_FRONT
+    R = reconstruction_kernels
+    if (out[OUT_FRONT_STATUS] != R.STATUS_OK or out[f + R.OUT_REASON] != R.REASON_NONE
+            or out[f + R.OUT_AMBIGUOUS] != 0.0):
+        return
+    heads = np.empty(2, dtype=np.int64)
+    plus = np.empty(2, dtype=np.int64)
+    for view in range(2):
+        o = OUT_VIEW + view * OUT_VIEW_SIZE
+        r = roi_kernels.REFINED
+        if out[o + r + 11] > inp[IN_FINISH]:
+            return  # cluttered: flagged, declutter and the doubt checks apply
+        x0, y0 = out[o + R_ROI], out[o + R_ROI + 1]
+        h, w = inp[IN_VIEW + view * IN_VIEW_SIZE + V_HEIGHT], inp[IN_VIEW + view * IN_VIEW_SIZE + V_WIDTH]
+        if x0 + out[o + r + 2] <= 0.0 or y0 + out[o + r] <= 0.0 or x0 + out[o + r + 3] >= w or y0 + out[o + r + 1] >= h:
+            return  # the window reaches a detector edge: cut_by_edge decides
+        heads[view] = int(out[o + roi_kernels.HEAD])
+        plus[view] = int(out[f + R.OUT_PLUS + view])
+    # The views' votes (how side-on, the head is the +d end), sorted as Python sorts the tuples, reversed.
+    n_votes = 0
+    sides = np.empty(2)
+    says = np.empty(2, dtype=np.bool_)
+    for view in range(2):
+        if heads[view] >= 0:
+            sides[n_votes] = out[f + R.OUT_SIDE + view]
+            says[n_votes] = heads[view] == plus[view]
+            n_votes += 1
+    if n_votes == 0:
+        return
+    if n_votes == 2 and (sides[1] > sides[0] or (sides[1] == sides[0] and says[1] and not says[0])):
+        sides[0], sides[1] = sides[1], sides[0]
+        says[0], says[1] = says[1], says[0]
+    if n_votes == 2 and says[0] != says[1]:
+        if sides[1] < inp[IN_FINISH + 4] * sides[0]:
+            n_votes = 1  # the foreshortened view's vote is the weaker evidence
+        else:
+            return  # the views disagree on the head: a reason
+    flipped = not says[0]
+    d = np.empty(3)
+    for i in range(3):
+        d[i] = -out[f + R.OUT_DIRECTION + i] if flipped else out[f + R.OUT_DIRECTION + i]
+    if flipped:
+        plus[0], plus[1] = 1 - plus[0], 1 - plus[1]
+    # Each view's tips with the head at its +d end (Features2D.with_head where the head moves).
+    n = 5
+    tips = np.empty((2, 2, 2))
+    same = True
+    for view in range(2):
+        o = OUT_VIEW + view * OUT_VIEW_SIZE
+        t = roi_kernels.TIPS
+        if heads[view] == plus[view]:
+            tips[view, 0, 0], tips[view, 0, 1] = out[o + t], out[o + t + 1]
+            tips[view, 1, 0], tips[view, 1, 1] = out[o + t + 2], out[o + t + 3]
+        else:
+            same = False
+            c0, c1 = out[o + roi_kernels.CENTROID], out[o + roi_kernels.CENTROID + 1]
+            a0, a1 = out[o + roi_kernels.AXIS], out[o + roi_kernels.AXIS + 1]
+            d0 = roi_kernels._tip_distance(out, o + roi_kernels.REACH, plus[view] == 0)
+            d1 = roi_kernels._tip_distance(out, o + roi_kernels.REACH + n, plus[view] == 1)
+            tips[view, 0, 0], tips[view, 0, 1] = c0 + a0 * d0, c1 + a1 * d0
+            tips[view, 1, 0], tips[view, 1, 1] = c0 - a0 * d1, c1 - a1 * d1
+    centre = out[f + R.OUT_CORRECTED:f + R.OUT_CORRECTED + 3]
+    placed = np.empty(R.TIPS_SIZE)
+    if same:
+        for i in range(R.TIPS_SIZE):
+            placed[i] = out[f + R.OUT_PLACED + i]
+        if flipped:  # the same ends in the other order
+            for i in range(3):
+                placed[R.TIPS_POINTS + i], placed[R.TIPS_POINTS + 3 + i] = (placed[R.TIPS_POINTS + 3 + i],
+                                                                            placed[R.TIPS_POINTS + i])
+    else:
+        fp, fq = OUT_VIEW, OUT_VIEW + OUT_VIEW_SIZE
+        c = roi_kernels.CENTROID
+        R._place(G, centre, d, tips[0], plus[0], tips[1], plus[1], out[fp + c:fp + c + 2], out[fq + c:fq + c + 2],
+                 placed, 0)
+    length, reprojection = placed[R.TIPS_LENGTH], placed[R.TIPS_REPROJECTION]
+    if math.isfinite(reprojection) and reprojection > inp[IN_FINISH + 3]:
+        return  # off its images: lost, with a reason
+    if not _robot_like(out, inp, centre, d, length):
+        return
+    for i in range(3):
+        out[P + P_CENTROID + i] = centre[i]
+        out[P + P_DIRECTION + i] = d[i]
+    for i in range(6):
+        out[P + P_TIPS + i] = placed[R.TIPS_POINTS + i]
+    out[P + P_LENGTH], out[P + P_REPROJECTION] = length, reprojection
+    for view in range(2):
+        k = P + P_VIEW_TIPS + 4 * view
+        first = 0 if plus[view] == 0 else 1
+        out[k], out[k + 1] = tips[view, first, 0], tips[view, first, 1]
+        out[k + 2], out[k + 3] = tips[view, 1 - first, 0], tips[view, 1 - first, 1]
+    out[P + P_PLAIN] = 1.0
+
+
+@kernel
+def search_pair(image_p, image_q, coarse_p, coarse_q, log_table, g, params, ring_outer, ring_inner, near_hw,
+                levels, search_settings, G, inp, prev, out):  # pragma: no cover - compiled
+    """Both views' steady-state search and the reconstruction's front (see the module docstring).
+
+    ``search_settings``: ``[detect_sigma, smooth_gain, floor, min_pixels, max_tries, max_candidates,
+    gate_px, axis_saturation, head_ramp_ratio, head_min_ramp_px]`` as roi_search passes them to
+    search_view; ``params``, ``ring_*``, ``near_hw``, ``levels`` as search_view takes them; ``G`` the
+    packed calibration; ``prev`` the previous pair's output (read where ``V_LEAN`` asks for the lean pass).
+    Returns ``(status, weights_p, mask_p, weights_q, mask_q)``.
+    """
+    empty_w = np.zeros((0, 0), dtype=np.float32)
+    empty_m = np.zeros((0, 0), dtype=np.uint8)
+    projected = project_segment(G, inp[IN_CENTRE], inp[IN_CENTRE + 1], inp[IN_CENTRE + 2], inp[IN_DIRECTION],
+                                inp[IN_DIRECTION + 1], inp[IN_DIRECTION + 2], inp[IN_HALF])
+    detect_sigma, smooth_gain, floor = search_settings[0], search_settings[1], search_settings[2]
+    min_pixels, max_tries, max_candidates = int(search_settings[3]), int(search_settings[4]), int(search_settings[5])
+    gate_px, axis_saturation = search_settings[6], search_settings[7]
+    head_ramp_ratio, head_min_ramp_px = search_settings[8], search_settings[9]
+    w_p, m_p, w_q, m_q = empty_w, empty_m, empty_w, empty_m
+    for view in range(2):
+        v = IN_VIEW + view * IN_VIEW_SIZE
+        o = OUT_VIEW + view * OUT_VIEW_SIZE
+        pu, pv = projected[view, 0, 0], projected[view, 0, 1]
+        eu0, ev0 = projected[view, 1, 0], projected[view, 1, 1]
+        eu1, ev1 = projected[view, 2, 0], projected[view, 2, 1]
+        margin = inp[IN_MARGIN]
+        if inp[v + V_HAS_OUTLINE] != 0.0:
+            # As the tracker: the last frame's 2D ends moved with the predicted image centroid, and the
+            # margin counted from the body's edge.
+            k = v + V_OUTLINE
+            cu, cv, u0, v0, u1, v1, half_width = (inp[k], inp[k + 1], inp[k + 2], inp[k + 3], inp[k + 4],
+                                                  inp[k + 5], inp[k + 6])
+            du, dv = pu - cu, pv - cv
+            eu0, ev0, eu1, ev1 = u0 + du, v0 + dv, u1 + du, v1 + dv
+            margin += half_width
+        ok, x0, y0, x1, y1 = _roi(pu, pv, eu0, ev0, eu1, ev1, margin, int(inp[v + V_HEIGHT]), int(inp[v + V_WIDTH]))
+        if not ok:
+            return PAIR_PER_VIEW, w_p, m_p, w_q, m_q
+        image = image_p if view == 0 else image_q
+        coarse = coarse_p if view == 0 else coarse_q
+        view_out = out[o:o + SEARCH_SIZE]
+        lean = False
+        if inp[v + V_LEAN] != 0.0:
+            # The last body moved by its centroid's predicted motion in this view.
+            lu, lv = project_point(G, view * VIEW_SIZE, inp[IN_LAST_CENTRE], inp[IN_LAST_CENTRE + 1],
+                                   inp[IN_LAST_CENTRE + 2])
+            qu = prev[o + roi_kernels.CENTROID] + (pu - lu)
+            qv = prev[o + roi_kernels.CENTROID + 1] + (pv - lv)
+            lean, weights, mask, lx0, ly0 = lean_view(
+                image, coarse, inp[v + V_FY], inp[v + V_FX], log_table, g, prev, o, qu, qv, inp[v + V_KNOWN_SIGMA],
+                params, near_hw, levels, axis_saturation, head_ramp_ratio, head_min_ramp_px, gate_px, out, o)
+            if lean:
+                x0, y0 = lx0, ly0
+        if not lean:
+            status, weights, mask = roi_kernels.search_view(
+                image, y0, y1, x0, x1, coarse, inp[v + V_FY], inp[v + V_FX], log_table, g, detect_sigma, smooth_gain,
+                floor, inp[v + V_KNOWN_SIGMA], min_pixels, max_tries, max_candidates, params, ring_outer, ring_inner,
+                near_hw, pu, pv, gate_px, axis_saturation, levels, head_ramp_ratio, head_min_ramp_px, view_out)
+            if status != roi_kernels.FOUND:
+                return PAIR_PER_VIEW, w_p, m_p, w_q, m_q
+        out[o + R_ROI], out[o + R_ROI + 1], out[o + R_ROI + 2], out[o + R_ROI + 3] = x0, y0, x1, y1
+        out[o + R_LEAN] = 1.0 if lean else 0.0
+        _extent(out, o, mask, x0 + int(view_out[roi_kernels.REFINED + 2]), y0 + int(view_out[roi_kernels.REFINED]))
+        r = roi_kernels.REFINED
+        clutter_sigma = clutter_axis_sigma(view_out[r + 11], int(view_out[r + 12]), view_out[r + 4], view_out[r + 6],
+                                           view_out[roi_kernels.EIGENVALUES], view_out[roi_kernels.EIGENVALUES + 1])
+        out[o + R_AXIS_SIGMA] = math.hypot(view_out[roi_kernels.AXIS_SIGMA], clutter_sigma)
+        if view == 0:
+            w_p, m_p = weights, mask
+        else:
+            w_q, m_q = weights, mask
+    fp = OUT_VIEW
+    fq = OUT_VIEW + OUT_VIEW_SIZE
+    c, a, t, e, h = roi_kernels.CENTROID, roi_kernels.AXIS, roi_kernels.TIPS, roi_kernels.EIGENVALUES, roi_kernels.HEAD
+    f = IN_FRONT
+    front = out[OUT_FRONT:OUT_FRONT + reconstruction_kernels.OUT_SIZE]
+    status = reconstruction_kernels.weighted_front(
+        G, out[fp + c:fp + c + 2], out[fp + a:fp + a + 2], out[fp + t:fp + t + 4].reshape((2, 2)),
+        out[fq + c:fq + c + 2], out[fq + a:fq + a + 2], out[fq + t:fq + t + 4].reshape((2, 2)),
+        out[fp + e], out[fp + e + 1], out[fp + R_AXIS_SIGMA], int(out[fp + h]),
+        out[fq + e], out[fq + e + 1], out[fq + R_AXIS_SIGMA], int(out[fq + h]),
+        inp[IN_PREVIOUS], inp[IN_PREVIOUS + 1], inp[IN_PREVIOUS + 2], inp[IN_PREVIOUS + 3] != 0.0,
+        inp[f], inp[f + 1], inp[f + 2], inp[f + 3], inp[f + 4], inp[f + 5], inp[f + 6], front)
+    out[OUT_FRONT_STATUS] = status
+    _finish(out, inp, G)
+    return PAIR_FOUND, w_p, m_p, w_q, m_q
+
+
+def warm_up() -> None:
+    """Compile :func:`search_pair` on a tiny biplane scene, for writable and read-only frames."""
+    from appliance.geometry_kernels import pack_view, pack_views
+
+    K = np.array([[400.0, 0.0, 20.0], [0.0, 400.0, 16.0], [0.0, 0.0, 1.0]])
+    turn = np.array([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
+    views = [pack_view(K, np.linalg.inv(K), R, np.array([0.0, 0.0, 500.0]), np.zeros(5)) for R in (np.eye(3), turn)]
+    G = pack_views(views[0], views[1], np.ones((3, 3)) / 3.0, 500.0)
+    h, w = 32, 40
+    yy, xx = np.mgrid[0:h, 0:w]
+    body = np.exp(-(((xx - 20.0) / 8.0) ** 2 + ((yy - 16.0) / 2.0) ** 2))
+    image = (20000 * np.exp(-body)).astype(np.uint16)
+    table = np.log(np.maximum(np.arange(65536, dtype=np.float32), np.float32(1.0)))
+    coarse = np.full((4, 5), np.float32(math.log(20000.0)), dtype=np.float32)
+    disk = np.array([1, 2, 2, 2, 1], dtype=np.int64)
+    params = np.array([0.25, 0.5, 8, 420, 40.0, 0.7, 2, 3.0, 0.2, 0.29, 3, 7, 4, 1, 3.0], dtype=np.float64)
+    levels = np.array([0.2, 0.25, 0.5, 0.64, 0.8])
+    settings = np.array([6.0, 0.29, 0.125, 8, 24, 8, 40.0, 1.0, 1.6, 1.0])
+    inp = np.zeros(IN_SIZE)
+    inp[IN_HALF], inp[IN_MARGIN] = 5.0, 14.0
+    for view in range(2):
+        v = IN_VIEW + view * IN_VIEW_SIZE
+        inp[v + V_FY], inp[v + V_FX], inp[v + V_HEIGHT], inp[v + V_WIDTH] = 8.0, 8.0, h, w
+    inp[IN_FRONT:IN_FRONT + FRONT_SETTINGS] = [3.0, 4.0, 12.0, 1.3, 0.001, 0.7, 0.25]
+    inp[IN_FINISH:IN_FINISH + FINISH_SETTINGS] = [0.15, 20.0, 0.25, 6.0, 0.5]
+    inp[IN_SOURCES:IN_SOURCES + 8] = [0.0, 0.0, -500.0, 400.0, 500.0, 0.0, 0.0, 400.0]
+    frozen = image.copy()
+    frozen.flags.writeable = False
+    for frame in (image, frozen):
+        for lean in (0.0, 1.0):
+            inp[IN_VIEW + V_LEAN] = inp[IN_VIEW + IN_VIEW_SIZE + V_LEAN] = lean
+            search_pair(frame, frame, coarse, coarse, table, view_kernels.GAUSSIAN_5, params, disk, disk, disk,
+                        levels, settings, G, inp, np.zeros(OUT_SIZE), np.empty(OUT_SIZE))
+
+
+register_warm_up(__name__)

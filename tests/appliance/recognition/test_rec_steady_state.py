@@ -1,0 +1,243 @@
+"""The steady state's one compiled call per pair (steady_state / steady_kernels) gives what the per-view path
+(find_in_roi per view, then reconstruct) gives, bit for bit: every posture record, every Blob and Features2D field,
+and the noise-sigma schedule, over short trajectories of several robots (clean and over a contrast-filled vessel)."""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from appliance.geometry import Calibration, View
+from appliance.recognition import PostureTracker, RecognitionSettings
+from appliance.recognition import tracker as tracker_module
+from appliance.recognition.steady_kernels import clutter_axis_sigma
+from appliance.recognition.features import clutter_axis_sigma_rad
+from appliance.recognition.steady_state import SteadyPair
+from appliance.robots import load_robots
+from drivers.loopback.scene_builders import S_BEND_CENTRELINE_MM, smooth_centreline
+from drivers.loopback.xray_render import (
+    BiplaneRenderer,
+    ImagingSettings,
+    RobotBody,
+    RobotPose,
+    VesselPhantom,
+    biplane_views,
+)
+
+
+@pytest.fixture(scope="module")
+def views() -> dict[str, object]:
+    return biplane_views(image_size=(384, 336), fov_mm=(90.0, 80.0))
+
+
+@pytest.fixture(scope="module")
+def calibration(views: dict[str, object]) -> Calibration:
+    return Calibration.from_views(*(View(n, v.K, v.dist, v.R, v.t, v.image_size)  # type: ignore[attr-defined]
+                                    for n, v in sorted(views.items())))
+
+
+def _same(a: object, b: object, skip: tuple[str, ...] = ()) -> None:
+    """Every field equal, arrays in dtype, shape and every bit (dataclasses compared field by field)."""
+    assert type(a) is type(b)
+    for f in dataclasses.fields(a):  # type: ignore[arg-type]
+        if f.name in skip:
+            continue
+        x, y = getattr(a, f.name), getattr(b, f.name)
+        if isinstance(x, np.ndarray):
+            assert x.dtype == y.dtype and x.shape == y.shape, f.name
+            np.testing.assert_array_equal(x, y, err_msg=f.name)
+        elif isinstance(x, dict) and any(dataclasses.is_dataclass(v) for v in x.values()):
+            assert x.keys() == y.keys()
+            for k in x:
+                _same(x[k], y[k])
+        elif isinstance(x, list) and x and isinstance(x[0], np.ndarray):
+            assert len(x) == len(y) and all(np.array_equal(u, v) for u, v in zip(x, y)), f.name
+        else:
+            assert x == y or (isinstance(x, float) and math.isnan(x) and math.isnan(y)), (f.name, x, y)
+
+
+@pytest.mark.parametrize("robot,start,velocity,direction", [
+    (1, (3.0, -4.0, 5.0), (20.0, 10.0, -5.0), (0.3, 0.5, 0.81)),
+    (3, (-4.0, 0.5, 6.0), (30.0, 0.0, 0.0), (0.9, 0.4, 0.2)),       # along the vessel
+    (4, (-20.0, -11.0, 4.0), (0.0, 25.0, 5.0), (0.2, 0.9, 0.4)),    # across the vessel
+    (6, (1.0, 0.0, 6.0), (10.0, -10.0, 0.0), (0.6, -0.3, 0.74)),    # over the vessel
+    (7, (8.0, 6.0, -5.0), (-15.0, 5.0, 10.0), (-0.7, 0.2, 0.68)),
+])
+def test_one_call_per_pair_equals_the_per_view_path(views: dict[str, object], calibration: Calibration, robot: int,
+                                                    start: tuple[float, ...], velocity: tuple[float, ...],
+                                                    direction: tuple[float, ...],
+                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    _track_both_ways(views, calibration, robot, start, velocity, direction, monkeypatch)
+
+
+def _track_both_ways(views: dict[str, object], calibration: Calibration, robot: int, start: tuple[float, ...],
+                     velocity: tuple[float, ...], direction: tuple[float, ...], monkeypatch: pytest.MonkeyPatch) -> int:
+    """Six frames through a tracker with the one call per pair and one without; asserts they are the same in
+    every bit; returns how many frames the first built from the call's numbers (plain frames)."""
+    spec = load_robots()[robot]
+    body = RobotBody(spec.length_mm, spec.diameter_mm, spec.tip_angle_deg, spec.attenuation_per_mm)
+    vessel = VesselPhantom(smooth_centreline(S_BEND_CENTRELINE_MM), 2.5, 0.06)
+    renderer = BiplaneRenderer(views, body, vessel=vessel, settings=ImagingSettings(), seed=robot)
+    settings = RecognitionSettings(dark_level=ImagingSettings().dark_level)
+    paired, per_view = PostureTracker(calibration, settings), PostureTracker(calibration, settings)
+    monkeypatch.setattr(per_view._pair, "usable", lambda *args: False)
+    # What each tracker searched and found (the blobs and features behind its postures).
+    calls = {"pair": 0}
+    real_pair = tracker_module.PostureTracker._search_pair
+
+    def counted(self, *args):  # type: ignore[no-untyped-def]
+        found = real_pair(self, *args)
+        calls["pair"] += bool(found)
+        return found
+
+    monkeypatch.setattr(tracker_module.PostureTracker, "_search_pair", counted)
+    kept = {}
+    real_posture = tracker_module.PostureTracker._posture
+
+    def keep(self, frame, t, rec, blobs):  # type: ignore[no-untyped-def]
+        kept[(id(self), frame)] = (blobs, rec.view_features)
+        return real_posture(self, frame, t, rec, blobs)
+
+    monkeypatch.setattr(tracker_module.PostureTracker, "_posture", keep)
+    roi_frames = plain = 0
+    for n in range(6):
+        t = n / 30.0
+        pose = RobotPose(np.array(start) + t * np.array(velocity), np.array(direction))
+        pair = renderer.render(pose)
+        a = paired.process(pair.images["p"], pair.images["q"], frame=n, t=t)
+        b = per_view.process(pair.images["p"], pair.images["q"], frame=n, t=t)
+        assert paired.last_search == per_view.last_search
+        assert a.to_record() == b.to_record()
+        _same(a, b, skip=("timings_us",))
+        plain += (id(paired), n) not in kept and paired.last_search == "roi"
+        if (id(paired), n) in kept:
+            (blobs_a, feats_a), (blobs_b, feats_b) = kept[(id(paired), n)], kept[(id(per_view), n)]
+            for name in ("p", "q"):
+                _same(blobs_a[name], blobs_b[name])
+                _same(feats_a[name], feats_b[name])
+        roi_frames += paired.last_search == "roi"
+        assert [v[1:] for v in paired._roi_noise.values()] == [v[1:] for v in per_view._roi_noise.values()]
+    assert roi_frames >= 3 and calls["pair"] == roi_frames
+    return plain
+
+
+def test_most_tracked_frames_are_plain(views: dict[str, object], calibration: Calibration,
+                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    # The posture of a plain frame is built from the call's numbers (no Blob, Features2D or Reconstruction):
+    # on a clean track (robot 1 away from the vessel) that is every tracked frame after the first.
+    plain = _track_both_ways(views, calibration, 1, (3.0, -4.0, 5.0), (20.0, 10.0, -5.0), (0.3, 0.5, 0.81),
+                             monkeypatch)
+    assert plain >= 3
+
+
+def test_pair_path_is_not_used_for_other_inputs(calibration: Calibration) -> None:
+    pair = SteadyPair(calibration, RecognitionSettings())
+    image = np.zeros((336, 384), dtype=np.uint16)
+    from appliance.recognition.segmentation import log_background
+    bg = log_background(image + 1000, 48, 0.0)
+    assert pair.usable(image, image, bg, bg)
+    assert not pair.usable(image.astype(np.float32), image, bg, bg)
+    assert not pair.usable(image, image[:, ::2], bg, bg)
+    assert not pair.usable(image, image, bg, None)
+    assert not SteadyPair(calibration, RecognitionSettings(estimator="paper")).usable(image, image, bg, bg)
+
+
+def test_compiled_clutter_term_equals_the_python_one() -> None:
+    rng = np.random.default_rng(4)
+    cases = [(0.0, 10, 1.0, 5.0, 3.0, 1.0), (0.3, 50, 1.0, -1.0, 3.0, 1.0), (0.3, 50, 1.0, 5.0, 1.0, 3.0),
+             (0.2, 40, 1.2, 30.0, 4.0, -0.5), (math.nan, 40, 1.2, 30.0, 4.0, 1.0), (0.2, 40, 1.2, 30.0, math.nan, 1.0)]
+    cases += [(float(rng.uniform(0, 1)), int(rng.integers(1, 3000)), float(rng.uniform(0.1, 3)),
+               float(rng.uniform(1, 900)), float(rng.uniform(1, 400)), float(rng.uniform(0, 20))) for _ in range(300)]
+    for case in cases:
+        a, b = clutter_axis_sigma(*case), clutter_axis_sigma_rad(*case)
+        assert a == b or (math.isnan(a) and math.isnan(b)), case
+
+
+def _lean_track(views: dict[str, object], calibration: Calibration, robot: int, centres: list[np.ndarray],
+                direction: tuple[float, ...]) -> list[tuple[object, object, tuple[bool, bool]]]:
+    """Per frame: the posture with the lean pass on, with it off, and which views the lean pass found."""
+    spec = load_robots()[robot]
+    body = RobotBody(spec.length_mm, spec.diameter_mm, spec.tip_angle_deg, spec.attenuation_per_mm)
+    vessel = VesselPhantom(smooth_centreline(S_BEND_CENTRELINE_MM), 2.5, 0.06)
+    renderer = BiplaneRenderer(views, body, vessel=vessel, settings=ImagingSettings(), seed=robot)
+    dark = ImagingSettings().dark_level
+    lean = PostureTracker(calibration, RecognitionSettings(dark_level=dark, lean_steady_state=True))
+    full = PostureTracker(calibration, RecognitionSettings(dark_level=dark))
+    frames = []
+    for n, centre in enumerate(centres):
+        pair = renderer.render(RobotPose(centre, np.array(direction)))
+        a = lean.process(pair.images["p"], pair.images["q"], frame=n, t=n / 30.0)
+        b = full.process(pair.images["p"], pair.images["q"], frame=n, t=n / 30.0)
+        used = lean._pair.lean_views() if lean.last_search == "roi" and lean._lean_from is not None else (False, False)
+        frames.append((a, b, used))
+    return frames
+
+
+def test_lean_pass_follows_a_clean_track_as_the_roi_search_does(views: dict[str, object],
+                                                                 calibration: Calibration) -> None:
+    # Robot 1 clear of the vessel in both views.
+    centres = [np.array([-8.0, 6.0, -3.0]) + n / 30.0 * np.array([9.0, 3.0, -2.0]) for n in range(7)]
+    frames = _lean_track(views, calibration, 1, centres, (-0.7, 0.2, 0.68))
+    # Frame 0 is detected, frame 1 searched in ROIs (no previous pair to start from); then the lean pass.
+    assert [used for _, _, used in frames[:2]] == [(False, False), (False, False)]
+    assert all(used == (True, True) for _, _, used in frames[2:])
+    for lean, full, _ in frames:
+        assert lean.ok and full.ok and lean.ambiguous == full.ambiguous and lean.head_identified == full.head_identified
+        assert np.linalg.norm(lean.centroid_mm - full.centroid_mm) < 0.01
+        assert np.abs(lean.tips_mm - full.tips_mm).max() < 0.05
+
+
+def test_lean_pass_falls_back_to_the_roi_search_where_the_body_moved_unexpectedly(
+        views: dict[str, object], calibration: Calibration) -> None:
+    # Frames 0-3 at constant velocity, then a 2.5 mm jump along the axis (~10 px): the body leaves the
+    # lean pass's capsule (4 px beyond the last body), which must not follow it.
+    direction = np.array([-0.7, 0.2, 0.68]) / np.linalg.norm([-0.7, 0.2, 0.68])
+    centres = [np.array([-8.0, 6.0, -3.0]) + n / 30.0 * np.array([9.0, 3.0, -2.0]) for n in range(4)]
+    centres.append(centres[-1] + 2.5 * direction)
+    frames = _lean_track(views, calibration, 1, centres, tuple(direction))
+    assert frames[3][2] == (True, True)
+    lean, full, used = frames[4]
+    assert used == (False, False)
+    assert lean.ok and full.ok
+    assert np.linalg.norm(lean.centroid_mm - full.centroid_mm) < 0.01
+
+
+def test_lean_pass_leaves_a_view_over_the_vessel_to_the_roi_search(views: dict[str, object],
+                                                                   calibration: Calibration) -> None:
+    # Robot 6 over the contrast-filled vessel: the background interpolated under it varies (clutter), which
+    # the lean pass (the last baseline, no end stops) does not handle; such a view takes the ROI search.
+    centres = [np.array([1.0, 0.0, 6.0]) + n / 30.0 * np.array([3.0, -3.0, 0.0]) for n in range(5)]
+    frames = _lean_track(views, calibration, 6, centres, (0.6, -0.3, 0.74))
+    over = [name for name in ("p", "q") if frames[-1][1].reason and f"view {name}" in frames[-1][1].reason]
+    assert over, "the pose is meant to put the robot over the vessel in a view"
+    for lean, full, used in frames[2:]:
+        for name, lean_view in zip(("p", "q"), used):
+            if name in over:
+                assert not lean_view
+        assert lean.ok == full.ok
+
+
+def test_a_compiled_axis_uncertainty_off_by_a_bit_sends_the_frame_to_python(views: dict[str, object],
+                                                                            calibration: Calibration) -> None:
+    # numba's hypot differs from Python's in the last bit for ~0.5 % of arguments: where the kernel's axis
+    # uncertainty (which its front used) is not Python's, the frame is neither plain nor finished from the
+    # kernel's front, and the features carry Python's value.
+    from appliance.recognition import steady_kernels as sk
+
+    spec = load_robots()[1]
+    body = RobotBody(spec.length_mm, spec.diameter_mm, spec.tip_angle_deg, spec.attenuation_per_mm)
+    renderer = BiplaneRenderer(views, body, settings=ImagingSettings(), seed=3)
+    tracker = PostureTracker(calibration, RecognitionSettings(dark_level=ImagingSettings().dark_level))
+    for n in range(2):
+        pair = renderer.render(RobotPose(np.array([-8.0, 6.0, -3.0 + 0.2 * n]), np.array([-0.7, 0.2, 0.68])))
+        tracker.process(pair.images["p"], pair.images["q"], frame=n, t=n / 30.0)
+    assert tracker.last_search == "roi"
+    steady = tracker._pair
+    assert steady.plain_posture(1, 1 / 30.0) is not None and steady.objects()[2] is not None
+    python_value = steady.objects()[1][1].axis_sigma_rad
+    steady.out[sk.OUT_VIEW_SIZE + sk.R_AXIS_SIGMA] = np.nextafter(python_value, np.inf)
+    assert steady.plain_posture(1, 1 / 30.0) is None
+    blobs, feats, status, _ = steady.objects()
+    assert status is None and feats[1].axis_sigma_rad == python_value
