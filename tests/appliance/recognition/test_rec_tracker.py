@@ -11,7 +11,8 @@ import pytest
 
 from appliance.errors import InputDataError
 from appliance.geometry import Calibration, View
-from appliance.recognition import PostureTracker, RecognitionSettings
+from appliance.recognition import PostureTracker, RecognitionSettings, detect, log_background
+from appliance.recognition.segmentation import Blob, Roi
 from drivers.loopback.xray_render import (
     BiplaneRenderer,
     ImagingSettings,
@@ -195,3 +196,37 @@ def test_head_of_a_cone_heavy_robot_seen_end_on_in_one_view(scene: tuple[Calibra
         assert posture.ok and posture.direction is not None
         error = math.degrees(math.acos(min(1.0, abs(float(np.dot(posture.direction, pose.direction))))))
         assert posture.ambiguous or error <= 5.0, f"silent axis error {error:.1f} deg"
+
+
+def _blob(width_px: float) -> Blob:
+    return Blob(window=Roi(0, 0, 4, 4), weights=np.zeros((4, 4), np.float32), mask=np.zeros((4, 4), bool),
+                pixel_count=10, peak=1.0, baseline=0.0, sigma=0.01, strength=10.0, centroid_px=(2.0, 2.0),
+                touches_border=False, width_px=width_px)
+
+
+def test_pairs_with_a_blob_narrower_than_any_body_are_dropped(scene: tuple[Calibration, BiplaneRenderer]) -> None:
+    calibration, _ = scene
+    tracker = PostureTracker(calibration)
+    floor = tracker.settings.min_body_width_px
+    candidates = {"p": [_blob(7.0), _blob(1.0)], "q": [_blob(1.0), _blob(6.5), _blob(floor)]}
+    pairs = [(0, 0, 0.3), (0, 1, 0.2), (1, 1, 0.1), (0, 2, 0.4), (1, 0, 0.1)]
+    assert tracker._bodies_only(pairs, candidates) == [(0, 1, 0.2), (0, 2, 0.4)]
+
+
+def test_the_thinnest_robot_at_a_small_image_is_wider_than_the_body_floor() -> None:
+    # Robot 7 (1 mm) on the simulated bench's smallest views (256 x 224 px, ~0.4 mm per pixel): its blob's
+    # width is still above min_body_width_px, in both views, from several directions.
+    true_views = biplane_views(image_size=(256, 224), elevation_deg=15.0)
+    calibration = Calibration.from_views(*(View(n, v.K, v.dist, v.R, v.t, v.image_size)
+                                           for n, v in sorted(true_views.items())))
+    settings = RecognitionSettings(dark_level=ImagingSettings().dark_level)
+    renderer = BiplaneRenderer(true_views, RobotBody(8.0, 1.0, 20.0, 1.0), settings=ImagingSettings(), seed=3)
+    widths = []
+    for direction in ((1.0, 0.0, 0.0), (0.0, 0.0, 1.0), (0.6, 0.6, 0.5), (0.3, -0.8, 0.5)):
+        pair = renderer.render(RobotPose(np.array([2.0, -3.0, 1.0]), np.array(direction) / np.linalg.norm(direction)))
+        for name in ("p", "q"):
+            background = log_background(pair.images[name], settings.background_scale_px, settings.dark_level)
+            blobs = detect(pair.images[name], background, settings)
+            assert blobs, (direction, name)
+            widths.append(max(blob.width_px for blob in blobs))
+    assert min(widths) >= settings.min_body_width_px, widths
