@@ -8,8 +8,11 @@ touches only a few thousand pixels per view (:func:`.roi_search.find_in_roi`: on
 view for the blob and its features). When the ROI search fails (nothing plausible, the blob
 reaches the ROI's edge, or it is far from the prediction), the frame falls back to a full-frame
 detection, where the background is re-estimated and candidate blobs of the two views are paired by
-the epipolar constraint. A frame where that fails too, or whose object is not robot-like
-(:mod:`.plausibility`), is reported lost (``ok: false`` with a reason), never with a made-up pose.
+the epipolar constraint (blobs narrower than any body's image, a vessel's remainder, are not paired). A
+frame where that fails too, or whose object is not robot-like (:mod:`.plausibility`), is reported lost
+(``ok: false`` with a reason), never with a made-up pose. Where the views' head claims disagree and only
+one view overlaps another structure, the clean view's claim is taken (``_head_by_clean_view``; the
+reconstruction alone leaves such a head unidentified).
 """
 from __future__ import annotations
 
