@@ -61,6 +61,13 @@ class RecognitionSettings(StrictModel):
     #: Weakest plausible robot material: peak attenuation over width, per mm (a metal robot is >= 0.17/mm
     #: even for the polymer-bodied robots of Table 1; diluted iodine contrast is ~0.05/mm).
     min_attenuation_per_mm: float = Field(0.1, ge=0)
+    #: Narrowest plausible body image (px, the blob's ``width_px``: 4 sqrt of its weighted cross-axis
+    #: moment, which is a cylinder's diameter). The detector's blur alone (a scintillator's spread, sigma
+    #: >= 0.5 px; 0.7 px simulated) makes any image at least 2 px wide by this measure, and robot 7 (1 mm)
+    #: is >= 3.8 px at 1024 px (2.4 px on the 256 x 224 sim views); a blob below it has its weights on one
+    #: line of pixels: the ridge that a background interpolated across a piece of vessel leaves, not an
+    #: object (``width_px`` floors at 1).
+    min_body_width_px: float = Field(1.5, gt=0)
     #: Largest aspect ratio sqrt(l1/l2) of a robot (a contrast-filled vessel is longer and thinner).
     max_elongation: float = Field(40.0, gt=1)
     #: Weakest plausible robot material along the path of the X-rays (per mm): the peak attenuation of the

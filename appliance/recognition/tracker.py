@@ -11,16 +11,18 @@ numbers, any other from the blobs and features as :func:`.roi_search.find_in_roi
 :func:`.reconstruction.reconstruct` give them, with the same result to the last bit. When the ROI
 search fails (nothing plausible, the blob reaches the ROI's edge, or it is far from the prediction),
 the frame falls back to a full-frame detection, where the background is re-estimated and candidate
-blobs of the two views are paired by the epipolar constraint. A frame where that fails too, or whose
-object is not robot-like (:mod:`.plausibility`), is reported lost (``ok: false`` with a reason), never
-with a made-up pose.
+blobs of the two views are paired by the epipolar constraint (blobs narrower than any body's image, a
+vessel's remainder, are not paired). A frame where that fails too, or whose object is not robot-like
+(:mod:`.plausibility`), is reported lost (``ok: false`` with a reason), never with a made-up pose.
+Where the views' head claims disagree and only one view overlaps another structure, the clean view's
+claim is taken (``_head_by_clean_view``; the reconstruction alone leaves such a head unidentified).
 """
 from __future__ import annotations
 
 import logging
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -164,6 +166,7 @@ class PostureTracker:
                 rec = reconstruct_from_front(self.calibration, feats["p"], feats["q"], self.settings, previous, *front)
             else:
                 rec = reconstruct(self.calibration, self.F, feats["p"], feats["q"], self.settings, previous)
+            rec = self._head_by_clean_view(rec, blobs, feats, previous)
         except ValueError as err:
             self._lose()
             posture = Posture.lost(frame, t, f"reconstruction failed: {err}")
@@ -327,7 +330,12 @@ class PostureTracker:
                                 [b.strength for b in candidates["p"]], [b.strength for b in candidates["q"]],
                                 self.settings.epipolar_band_px)
         timings["correspondence"] += (time.perf_counter_ns() - start) / 1e3
-        pairs, faint = self._metal_only(pairs, candidates)
+        bodies = self._bodies_only(pairs, candidates)
+        if pairs and not bodies:
+            return None, (f"the only objects seen in both views are narrower than "
+                          f"{self.settings.min_body_width_px:g} px across (the remainder of a vessel under an "
+                          f"interpolated background), not a body")
+        pairs, faint = self._metal_only(bodies, candidates)
         if not pairs and faint:
             return None, (f"the only objects seen in both views attenuate {faint:.2f}/mm, like contrast "
                           f"medium, not like the robot (>= {self.settings.min_attenuation_per_mm:g}/mm)")
@@ -370,6 +378,21 @@ class PostureTracker:
                   / float(self.calibration.views[name].K[0, 0]) for name, blob in blobs.items()]
         return abs(math.log(max(widths[0], 1e-6) / max(widths[1], 1e-6)))
 
+    def _bodies_only(self, pairs: list[tuple[int, int, float]], candidates: dict[str, list[Blob]]
+                     ) -> list[tuple[int, int, float]]:
+        """Drop pairs with a blob narrower than any body's image (``settings.min_body_width_px``).
+
+        Where a candidate is a piece of contrast-filled vessel, the attenuation beside it interpolated
+        under it can leave only a ridge one pixel wide as its weights: such a blob has no width to judge
+        its attenuation per mm by (:meth:`_metal_only` would divide by that pixel) and, a piece of one
+        3D vessel seen in both views, its two images can pair up along epipolar lines better than the
+        robot's short, round blobs do (robot 4, 3 x 1.5 mm: tips 3.4 px RMS against the vessel's 0.4
+        px; the vessel pair was reported 7.4 mm from the robot).
+        """
+        floor = self.settings.min_body_width_px
+        return [(i, j, distance) for i, j, distance in pairs
+                if candidates["p"][i].width_px >= floor and candidates["q"][j].width_px >= floor]
+
     def _metal_only(self, pairs: list[tuple[int, int, float]], candidates: dict[str, list[Blob]]
                     ) -> tuple[list[tuple[int, int, float]], float]:
         """Drop pairs whose blobs attenuate too weakly per mm of their width to be the (metal) robot.
@@ -399,6 +422,38 @@ class PostureTracker:
         cp = self.calibration.p.undistort_points(feats["p"].centroid)
         cq = self.calibration.q.undistort_points(feats["q"].centroid)
         return float(epipolar_distance_px(self.F, cp, cq)[0])
+
+    def _head_by_clean_view(self, rec: Reconstruction, blobs: dict[str, Blob], feats: dict[str, Features2D],
+                            previous: np.ndarray | None) -> Reconstruction:
+        """The head as the clean view sees it, where the views' claims disagree and only the other view
+        overlaps another structure.
+
+        The head is told by the axial profile: the cone's end ramps, the flat end steps. In a view where
+        the body overlaps a vessel (clutter above ``settings.max_clutter``) the background interpolated
+        under it slopes along the axis, and the end that meets the vessel runs on into it or is cut by
+        it: that view's ramps measure the vessel's edge, not the cone. A clean view's profile has none of
+        this, so where the two claims point to opposite 3D ends the clean view's claim is taken. Left
+        unidentified, both ends are measured as flat and the cone's apex falls short by ~0.7 of the
+        cone's length (robots 2, 3, 5, 7: 2 to 5.5 mm). The reconstruction is redone with the cluttered
+        view's claim withdrawn; its own checks (the ends' reprojection when the tips and the axis planes
+        disagree) still apply, and the first result stands if the redone one claims no head or leaves
+        the axis unresolved.
+        """
+        if (rec.head_identified or rec.direction is None or self.settings.estimator == "paper"
+                or any(feat.head_index is None for feat in feats.values())):
+            return rec
+        cluttered = [name for name in VIEWS if blobs[name].clutter > self.settings.max_clutter]
+        if len(cluttered) != 1:
+            return rec
+        clean = "q" if cluttered[0] == "p" else "p"
+        withdrawn = dict(feats)
+        withdrawn[cluttered[0]] = replace(feats[cluttered[0]], head_index=None)
+        redone = reconstruct(self.calibration, self.F, withdrawn["p"], withdrawn["q"], self.settings, previous)
+        if not redone.head_identified or redone.direction is None:
+            return rec
+        redone.reasons.append(f"the head is view {clean}'s: view {cluttered[0]}, over another structure, "
+                              f"saw it at the other end")
+        return redone
 
     # ------------------------------------------------------------------------------------ results
     def _posture(self, frame: int, t: float, rec: Reconstruction, blobs: dict[str, Blob]) -> Posture:

@@ -11,7 +11,10 @@ import pytest
 
 from appliance.errors import InputDataError
 from appliance.geometry import Calibration, View
-from appliance.recognition import PostureTracker, RecognitionSettings
+from appliance.recognition import PostureTracker, RecognitionSettings, detect, log_background
+from appliance.recognition.features import Features2D
+from appliance.recognition.reconstruction import reconstruct
+from appliance.recognition.segmentation import Blob, Roi
 from drivers.loopback.xray_render import (
     BiplaneRenderer,
     ImagingSettings,
@@ -195,3 +198,78 @@ def test_head_of_a_cone_heavy_robot_seen_end_on_in_one_view(scene: tuple[Calibra
         assert posture.ok and posture.direction is not None
         error = math.degrees(math.acos(min(1.0, abs(float(np.dot(posture.direction, pose.direction))))))
         assert posture.ambiguous or error <= 5.0, f"silent axis error {error:.1f} deg"
+
+
+def _blob(width_px: float, clutter: float = 0.0) -> Blob:
+    return Blob(window=Roi(0, 0, 4, 4), weights=np.zeros((4, 4), np.float32), mask=np.zeros((4, 4), bool),
+                pixel_count=10, peak=1.0, baseline=0.0, sigma=0.01, strength=10.0, centroid_px=(2.0, 2.0),
+                touches_border=False, width_px=width_px, clutter=clutter)
+
+
+def test_pairs_with_a_blob_narrower_than_any_body_are_dropped(scene: tuple[Calibration, BiplaneRenderer]) -> None:
+    calibration, _ = scene
+    tracker = PostureTracker(calibration)
+    floor = tracker.settings.min_body_width_px
+    candidates = {"p": [_blob(7.0), _blob(1.0)], "q": [_blob(1.0), _blob(6.5), _blob(floor)]}
+    pairs = [(0, 0, 0.3), (0, 1, 0.2), (1, 1, 0.1), (0, 2, 0.4), (1, 0, 0.1)]
+    assert tracker._bodies_only(pairs, candidates) == [(0, 1, 0.2), (0, 2, 0.4)]
+
+
+def test_the_thinnest_robot_at_a_small_image_is_wider_than_the_body_floor() -> None:
+    # Robot 7 (1 mm) on the simulated bench's smallest views (256 x 224 px, ~0.4 mm per pixel): its blob's
+    # width is still above min_body_width_px, in both views, from several directions.
+    true_views = biplane_views(image_size=(256, 224), elevation_deg=15.0)
+    calibration = Calibration.from_views(*(View(n, v.K, v.dist, v.R, v.t, v.image_size)
+                                           for n, v in sorted(true_views.items())))
+    settings = RecognitionSettings(dark_level=ImagingSettings().dark_level)
+    renderer = BiplaneRenderer(true_views, RobotBody(8.0, 1.0, 20.0, 1.0), settings=ImagingSettings(), seed=3)
+    widths = []
+    for direction in ((1.0, 0.0, 0.0), (0.0, 0.0, 1.0), (0.6, 0.6, 0.5), (0.3, -0.8, 0.5)):
+        pair = renderer.render(RobotPose(np.array([2.0, -3.0, 1.0]), np.array(direction) / np.linalg.norm(direction)))
+        for name in ("p", "q"):
+            background = log_background(pair.images[name], settings.background_scale_px, settings.dark_level)
+            blobs = detect(pair.images[name], background, settings)
+            assert blobs, (direction, name)
+            widths.append(max(blob.width_px for blob in blobs))
+    assert min(widths) >= settings.min_body_width_px, widths
+
+
+def _rod_features(calibration: Calibration, centre: np.ndarray, direction: np.ndarray, length_mm: float,
+                  head_at_head: dict[str, bool]) -> dict[str, Features2D]:
+    """Both views' features of a rod (head at ``centre + length/2 direction``), tip 0 its head's image,
+    each view claiming the head at the true end or at the other one (``head_at_head``)."""
+    feats = {}
+    for name in ("p", "q"):
+        view = calibration.views[name]
+        head, tail, middle = view.project(np.vstack([centre + 0.5 * length_mm * direction,
+                                                     centre - 0.5 * length_mm * direction, centre]))
+        axis = (head - tail) / np.linalg.norm(head - tail)
+        half = 0.5 * float(np.linalg.norm(head - tail))
+        feats[name] = Features2D(middle, axis, (half * half / 3.0, 1.0), np.vstack([head, tail]), 200,
+                                 0 if head_at_head[name] else 1, axis_sigma_rad=0.002)
+    return feats
+
+
+@pytest.mark.parametrize("clutter_p, clutter_q, expected", [(0.0, 0.3, 1.0), (0.3, 0.0, -1.0), (0.3, 0.3, None),
+                                                             (0.0, 0.0, None)])
+def test_the_clean_view_tells_the_head_when_a_cluttered_view_disagrees(
+        scene: tuple[Calibration, BiplaneRenderer], clutter_p: float, clutter_q: float, expected: float | None) -> None:
+    # View p claims the true head, q the other end: where only q is cluttered p's claim is taken (the
+    # direction points to the head), where only p is, q's (wrong here, and taken all the same: the rule
+    # trusts the clean view); with both views clean or both cluttered the head stays unidentified.
+    calibration, _ = scene
+    tracker = PostureTracker(calibration)
+    direction = np.array([0.6, 0.3, 0.74])
+    direction /= np.linalg.norm(direction)
+    centre = np.array([2.0, -1.0, 3.0])
+    feats = _rod_features(calibration, centre, direction, 10.0, {"p": True, "q": False})
+    blobs = {"p": _blob(7.0, clutter_p), "q": _blob(7.0, clutter_q)}
+    first = reconstruct(calibration, tracker.F, feats["p"], feats["q"], tracker.settings)
+    assert not first.head_identified and first.direction is not None
+    rec = tracker._head_by_clean_view(first, blobs, feats, None)
+    if expected is None:
+        assert rec is first
+        return
+    assert rec.head_identified
+    assert float(np.dot(rec.direction, direction)) == pytest.approx(expected, abs=1e-3)
+    assert any("the head is view" in reason for reason in rec.reasons)
