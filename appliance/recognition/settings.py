@@ -50,7 +50,13 @@ class RecognitionSettings(StrictModel):
     #: blob's clutter. Off by default: on the accuracy benchmark it cuts robot 6's tip RMS (seeds 1-20:
     #: 0.55 -> 0.37 mm) and its clean-frame centroid RMS (0.110 -> 0.072 mm), but some frames over a
     #: vessel that the default loses or measures near enough become ok with a tip several mm off (robot 3
-    #: on seeds 3, 20261121 and 90210, robot 4 on 3 and 20261121, robot 6 on 777).
+    #: on seeds 3, 20261121 and 90210, robot 4 on 3 and 20261121, robot 6 on 777). Those where the views
+    #: disagreed on the head with one view cluttered are now resolved by the clean view (the tracker's
+    #: ``_head_by_clean_view``); measured with that rule (in the head vote; seeds 1-3 and the 5 standing
+    #: seeds, all robots), switching this on still breaks robot 6 seed 2 centroid (0.087 -> 0.117 mm),
+    #: robot 4 seed 20261121 tips (0.21 -> 0.34) and robot 3 seed 90210 (centroid 0.07 -> 0.32, tips
+    #: 0.12 -> 0.40): frames the default loses (reprojecting > 3 px over clutter, or ends that fit neither
+    #: pairing) become ok 0.2-0.5 mm off, and nothing checks them yet.
     background_along_structure: bool = False
     #: Smallest and largest plausible robot images (pixels of the core, extent in px).
     min_pixels: int = Field(8, ge=1)
