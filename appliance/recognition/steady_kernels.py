@@ -303,16 +303,8 @@ def lean_view(image, coarse, fy, fx, log_table, g, prev, po, qu, qv, sigma, p, n
     _capsule_rows(hh, ww, ox, oy, ax, ay, bs0 - gs_s, bs1 + gs_s, bt + gs_t, xs0, xs1)
     _capsule_rows(hh, ww, ox, oy, ax, ay, bs0, bs1, bt, xb0, xb1)
     # Attenuation on the grown capsule: attenuation_from_coarse's arithmetic, pixel for pixel.
-    hs, ws = coarse.shape
-    ix0 = np.empty(ww, dtype=np.int64)
-    ix1 = np.empty(ww, dtype=np.int64)
-    wxs = np.empty(ww, dtype=np.float32)
-    for x in range(ww):
-        s_ = min(max((x + x0 + 0.5) / fx - 0.5, 0.0), ws - 1.0)
-        i = min(int(s_), max(ws - 2, 0))
-        ix0[x] = i
-        ix1[x] = min(i + 1, ws - 1)
-        wxs[x] = np.float32(s_ - i)
+    ws = coarse.shape[1]
+    ix0, ix1, wxs = view_kernels.bilinear_columns(ww, x0, fx, ws)
     a = np.zeros((hh, ww), dtype=np.float32)
     row = np.empty(ws, dtype=np.float32)
     one = np.float32(1.0)
@@ -320,12 +312,7 @@ def lean_view(image, coarse, fy, fx, log_table, g, prev, po, qu, qv, sigma, p, n
     for y in range(hh):
         if xa1[y] <= xa0[y]:
             continue
-        s_ = min(max((y + y0 + 0.5) / fy - 0.5, 0.0), hs - 1.0)
-        i = min(int(s_), max(hs - 2, 0))
-        j = min(i + 1, hs - 1)
-        wy = np.float32(s_ - i)
-        for c in range(clo, chi):
-            row[c] = coarse[i, c] * (one - wy) + coarse[j, c] * wy
+        view_kernels.coarse_row_at(coarse, y + y0, fy, clo, chi, row)
         src, arow = image[y + y0], a[y]
         for x in range(xa0[y], xa1[y]):
             bg = row[ix0[x]] * (one - wxs[x]) + row[ix1[x]] * wxs[x]

@@ -169,14 +169,10 @@ def noise_sigma_f32(a):  # pragma: no cover - compiled
 
 # ------------------------------------------------------------------------------------------ attenuation
 @kernel
-def attenuation_from_coarse(image, y0, y1, x0, x1, coarse, fy, fx, log_table):  # pragma: no cover
-    """``log B - log(max(I - dark, 1))`` (float32) on a window, ``log B`` interpolated from ``coarse``.
-
-    The interpolation is the bilinear upsampling's (OpenCV's INTER_LINEAR: pixel centre ``x`` at
-    ``(x + 0.5) / f - 0.5`` of the coarse grid, clamped), in float32 like the numpy code; ``log_table``
-    holds the log term per gray level (dark level applied)."""
-    hs, ws = coarse.shape
-    h, w = y1 - y0, x1 - x0
+def bilinear_columns(w, x0, fx, ws):  # pragma: no cover - compiled
+    """For columns ``x0 .. x0 + w - 1`` of the full image, the two coarse columns and the float32 weight of
+    the second in the bilinear upsampling by ``fx`` of ``ws`` coarse columns (OpenCV's INTER_LINEAR: pixel
+    centre ``x`` at ``(x + 0.5) / f - 0.5`` of the coarse grid, clamped)."""
     ix0 = np.empty(w, dtype=np.int64)
     ix1 = np.empty(w, dtype=np.int64)
     wx = np.empty(w, dtype=np.float32)
@@ -186,17 +182,39 @@ def attenuation_from_coarse(image, y0, y1, x0, x1, coarse, fy, fx, log_table):  
         ix0[x] = i
         ix1[x] = min(i + 1, ws - 1)
         wx[x] = np.float32(s - i)
+    return ix0, ix1, wx
+
+
+@kernel
+def coarse_row_at(coarse, y, fy, lo, hi, row):  # pragma: no cover - compiled
+    """Fill ``row[lo:hi]`` with the coarse grid interpolated (bilinear, as :func:`bilinear_columns`) to
+    full-image row ``y``, in float32."""
+    hs = coarse.shape[0]
+    one = np.float32(1.0)
+    s = min(max((y + 0.5) / fy - 0.5, 0.0), hs - 1.0)
+    i = min(int(s), max(hs - 2, 0))
+    j = min(i + 1, hs - 1)
+    wy = np.float32(s - i)
+    for c in range(lo, hi):
+        row[c] = coarse[i, c] * (one - wy) + coarse[j, c] * wy
+
+
+@kernel
+def attenuation_from_coarse(image, y0, y1, x0, x1, coarse, fy, fx, log_table):  # pragma: no cover
+    """``log B - log(max(I - dark, 1))`` (float32) on a window, ``log B`` interpolated from ``coarse``.
+
+    The interpolation is the bilinear upsampling's (OpenCV's INTER_LINEAR: pixel centre ``x`` at
+    ``(x + 0.5) / f - 0.5`` of the coarse grid, clamped), in float32 like the numpy code; ``log_table``
+    holds the log term per gray level (dark level applied)."""
+    ws = coarse.shape[1]
+    h, w = y1 - y0, x1 - x0
+    ix0, ix1, wx = bilinear_columns(w, x0, fx, ws)
     out = np.empty((h, w), dtype=np.float32)
     row = np.empty(ws, dtype=np.float32)
     one = np.float32(1.0)
     lo, hi = ix0[0], ix1[w - 1] + 1 if w > 0 else 0
     for y in range(h):
-        s = min(max((y + y0 + 0.5) / fy - 0.5, 0.0), hs - 1.0)
-        i = min(int(s), max(hs - 2, 0))
-        j = min(i + 1, hs - 1)
-        wy = np.float32(s - i)
-        for c in range(lo, hi):
-            row[c] = coarse[i, c] * (one - wy) + coarse[j, c] * wy
+        coarse_row_at(coarse, y + y0, fy, lo, hi, row)
         for x in range(w):
             bg = row[ix0[x]] * (one - wx[x]) + row[ix1[x]] * wx[x]
             out[y, x] = bg - log_table[image[y + y0, x + x0]]
