@@ -50,7 +50,9 @@ class Features2D:
     head_index: int | None = None
     ramp_px: tuple[float, float] | None = None
     reach: tuple[dict[float, float], dict[float, float]] | None = None
-    #: Standard deviation (radians) of the axis direction expected from the image noise; None if unknown.
+    #: Standard deviation (radians) of the axis direction expected from the image noise, the mixed
+    #: moment's sampling error on the pixel grid (:data:`.view_kernels.MOMENT_BIAS_PX2`) and, over
+    #: another structure, the background under the body (:func:`clutter_axis_sigma_rad`); None if unknown.
     axis_sigma_rad: float | None = None
 
     def tip_distance(self, end: int, conical: bool) -> float:
@@ -197,7 +199,8 @@ def weighted_features(blob: Blob, settings: RecognitionSettings | None = None) -
     (:func:`.view_kernels.weighted_view_features`); the head is the end whose ramp (profile from 0.8
     down to 0.2 of the plateau) is clearly longer. The centroid includes the cone tip the weights lost
     beyond their end (:func:`.view_kernels.missing_cone_shift`: ~0.2 px along the axis on robot 6), and
-    the reaches are measured from it; the moments and the axis are the weights' own.
+    the reaches are measured from it; the moments and the axis are the weights' own. The axis' sigma
+    is the kernel's (pixel noise and the mixed moment's sampling error) with the clutter term added.
     """
     settings = settings or RecognitionSettings()
     cap = settings.axis_saturation * blob.peak if settings.axis_saturation < 1.0 else math.inf

@@ -90,7 +90,9 @@ class RecognitionSettings(StrictModel):
     #: The 2D axis is the principal axis of the weights capped at this fraction of the peak (1: uncapped).
     axis_saturation: float = Field(1.0, gt=0, le=1)
 
-    #: Floor (radians) under a view's axis-angle noise: blur and pixelation biases that noise does not show.
+    #: Floor (radians) under a view's axis-angle noise: blur and pixelation biases that noise does not show
+    #: (on top of the mixed moment's sampling error, view_kernels.MOMENT_BIAS_PX2 / (l1 - l2), which each
+    #: view's sigma already carries).
     axis_floor_rad: float = Field(0.001, gt=0)
     #: A view whose image is less elongated than this (l1 / l2) gives no axis plane (robot seen end-on).
     min_view_elongation: float = Field(1.3, ge=1)
