@@ -133,6 +133,30 @@ def test_a_rod_reprojecting_more_than_a_few_pixels_off_its_images_is_not_reporte
     assert off_its_images(calibration, rec(13.26), clean, RecognitionSettings(estimator="paper")) is None
 
 
+def test_with_the_background_along_the_structure_a_cluttered_rod_must_reproject_tighter() -> None:
+    # The background along the vessel removes the slope that showed a blob running on into it: only the
+    # views' disagreement is left, so over a vessel the limit is tighter (a clean frame's is not).
+    calibration = _calibration(150.0)
+    up = np.array([0.0, 0.0, 1.0])
+    along = RecognitionSettings(background_along_structure=True, max_cluttered_reprojection_along_px=2.0,
+                                max_both_cluttered_reprojection_along_px=1.5)
+
+    def rec(reprojection_px: float) -> SimpleNamespace:
+        return SimpleNamespace(reprojection_px=reprojection_px, centroid=np.zeros(3), direction=up)
+
+    clean = {"p": SimpleNamespace(clutter=0.0), "q": SimpleNamespace(clutter=0.0)}
+    one = {"p": SimpleNamespace(clutter=0.4), "q": SimpleNamespace(clutter=0.0)}
+    both = {"p": SimpleNamespace(clutter=0.4), "q": SimpleNamespace(clutter=0.4)}
+    assert off_its_images(calibration, rec(2.5), one, SETTINGS.model_copy(update={"background_along_structure": False})) is None
+    reason = off_its_images(calibration, rec(2.5), one, along)
+    assert reason is not None and "2.5 px" in reason and "(> 2 px)" in reason
+    assert off_its_images(calibration, rec(1.8), one, along) is None
+    reason = off_its_images(calibration, rec(1.8), both, along)
+    assert reason is not None and "(> 1.5 px)" in reason
+    assert off_its_images(calibration, rec(1.5), both, along) is None
+    assert off_its_images(calibration, rec(2.5), clean, along) is None  # clean frames keep their limit
+
+
 def test_a_tracked_rod_in_doubt_cannot_change_length_or_turn_its_head_round_in_one_frame() -> None:
     up = np.array([0.0, 0.0, 1.0])
     over_vessel = {"p": SimpleNamespace(clutter=0.55), "q": SimpleNamespace(clutter=0.0)}
