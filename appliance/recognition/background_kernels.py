@@ -32,6 +32,7 @@ import math
 import numpy as np
 
 from appliance.compiled import kernel, register_warm_up
+from appliance.recognition import view_kernels
 from appliance.recognition.run_sets import number_sets, union
 
 #: Columns of :func:`coarse_components`' statistics rows.
@@ -259,32 +260,16 @@ def _attenuation(image: np.ndarray, y0: int, y1: int, x0: int, x1: int, coarse: 
     """:func:`.view_kernels.attenuation_from_coarse`'s values (the same float32 operations on each pixel),
     in two vectorisable passes a row: ``log B`` of the row from its coarse neighbours, then the
     gray levels' logs subtracted, instead of both inside one loop that the compiler leaves scalar."""
-    hs, ws = coarse.shape
+    ws = coarse.shape[1]
     h, w = y1 - y0, x1 - x0
-    ix0 = np.empty(w, dtype=np.int64)
-    ix1 = np.empty(w, dtype=np.int64)
-    wx = np.empty(w, dtype=np.float32)
-    wx0 = np.empty(w, dtype=np.float32)
-    one = np.float32(1.0)
-    for x in range(w):
-        s = min(max((x + x0 + 0.5) / fx - 0.5, 0.0), ws - 1.0)
-        i = min(int(s), max(ws - 2, 0))
-        ix0[x] = i
-        ix1[x] = min(i + 1, ws - 1)
-        wx[x] = np.float32(s - i)
-        wx0[x] = one - wx[x]
+    ix0, ix1, wx = view_kernels.bilinear_columns(w, x0, fx, ws)
+    wx0 = np.float32(1.0) - wx
     out = np.empty((h, w), dtype=np.float32)
     row = np.empty(ws, dtype=np.float32)
     background = np.empty(w, dtype=np.float32)
     lo, hi = ix0[0], ix1[w - 1] + 1 if w > 0 else 0
     for y in range(h):
-        s = min(max((y + y0 + 0.5) / fy - 0.5, 0.0), hs - 1.0)
-        i = min(int(s), max(hs - 2, 0))
-        j = min(i + 1, hs - 1)
-        wy = np.float32(s - i)
-        wy0 = one - wy
-        for c in range(lo, hi):
-            row[c] = coarse[i, c] * wy0 + coarse[j, c] * wy
+        view_kernels.coarse_row_at(coarse, y + y0, fy, lo, hi, row)
         for x in range(w):
             background[x] = row[ix0[x]] * wx0[x] + row[ix1[x]] * wx[x]
         levels = image[y + y0, x0:x1]
