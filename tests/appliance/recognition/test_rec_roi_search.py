@@ -25,18 +25,6 @@ from drivers.loopback.xray_render import (
 )
 
 
-
-@pytest.fixture(scope="module")
-def views() -> dict[str, object]:
-    return biplane_views(image_size=(384, 336), fov_mm=(90.0, 80.0))
-
-
-@pytest.fixture(scope="module")
-def calibration(views: dict[str, object]) -> Calibration:
-    return Calibration.from_views(*(View(n, v.K, v.dist, v.R, v.t, v.image_size)  # type: ignore[attr-defined]
-                                    for n, v in sorted(views.items())))
-
-
 def _rendered_views(views: dict[str, object], robot: int, pose: RobotPose, seed: int) -> dict[str, np.ndarray]:
     spec = load_robots()[robot]
     body = RobotBody(spec.length_mm, spec.diameter_mm, spec.tip_angle_deg, spec.attenuation_per_mm)

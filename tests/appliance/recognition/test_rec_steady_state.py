@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from appliance.geometry import Calibration, View
+from appliance.geometry import Calibration
 from appliance.recognition import PostureTracker, RecognitionSettings
 from appliance.recognition import tracker as tracker_module
 from appliance.recognition.steady_kernels import clutter_axis_sigma
@@ -23,19 +23,7 @@ from drivers.loopback.xray_render import (
     RobotBody,
     RobotPose,
     VesselPhantom,
-    biplane_views,
 )
-
-
-@pytest.fixture(scope="module")
-def views() -> dict[str, object]:
-    return biplane_views(image_size=(384, 336), fov_mm=(90.0, 80.0))
-
-
-@pytest.fixture(scope="module")
-def calibration(views: dict[str, object]) -> Calibration:
-    return Calibration.from_views(*(View(n, v.K, v.dist, v.R, v.t, v.image_size)  # type: ignore[attr-defined]
-                                    for n, v in sorted(views.items())))
 
 
 def _same(a: object, b: object, skip: tuple[str, ...] = ()) -> None:
