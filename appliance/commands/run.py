@@ -39,6 +39,7 @@ def run(args: argparse.Namespace) -> int:
     )
     from appliance.device_factory import open_devices
     from appliance.errors import ConfigError
+    from appliance.operator_stop import ctrl_c_requests_stop
     from appliance.orchestrator import LoopSettings, Orchestrator, RecordingListener, recognition_settings
     from appliance.recognition import PostureTracker
     from appliance.recording import Recorder
@@ -74,18 +75,13 @@ def run(args: argparse.Namespace) -> int:
             orchestrator.listeners.append(RecordingListener(recorder))
         started = time.monotonic()
         try:
-            with orchestrator:
+            with ctrl_c_requests_stop(orchestrator.request_stop, "appliance run"), orchestrator:
                 print("appliance run: loop running; Ctrl-C stops (coils ramp to zero)", file=sys.stderr, flush=True)
-                try:
-                    while orchestrator.running:
-                        report = orchestrator.step()
-                        progress.show(progress_text(report))
-                        if args.seconds is not None and time.monotonic() - started >= args.seconds:
-                            orchestrator.request_stop(f"time limit of {args.seconds:g} s")
-                except KeyboardInterrupt:
-                    orchestrator.request_stop("operator stop (Ctrl-C)")
-                    if orchestrator.running:
-                        orchestrator.step()   # latches the stop: output off, reason recorded
+                while orchestrator.running:
+                    report = orchestrator.step()
+                    progress.show(progress_text(report))
+                    if args.seconds is not None and time.monotonic() - started >= args.seconds:
+                        orchestrator.request_stop(f"time limit of {args.seconds:g} s")
         finally:
             progress.end()
             if recorder is not None:

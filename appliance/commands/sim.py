@@ -73,6 +73,7 @@ def progress_text(report: Any, cross_track_mm: float | None = None, position_mm:
 
 
 def run(args: argparse.Namespace) -> int:
+    from appliance.operator_stop import ctrl_c_requests_stop
     from appliance.orchestrator import RecordingListener
     from appliance.plots import plot_path
     from appliance.recording import Recorder
@@ -103,8 +104,9 @@ def run(args: argparse.Namespace) -> int:
                                            calibration=sim.devices.calibration.to_dict(),
                                            frames_every=config.recording.frames_every)
                 sim.orchestrator.listeners.append(RecordingListener(recorder))
-            result = sim.run(args.seconds, on_step=lambda report, truth: progress.show(
-                progress_text(report, truth.cross_track_mm)))
+            with ctrl_c_requests_stop(sim.orchestrator.request_stop, "appliance sim"):
+                result = sim.run(args.seconds, on_step=lambda report, truth: progress.show(
+                    progress_text(report, truth.cross_track_mm)))
             stats = sim.orchestrator.stats
             robot = sim.robot
             length_mm = sim.follower.length_mm
