@@ -25,7 +25,8 @@ counters) -> the pair formed in the pairer -> the loop's ``next_pair`` returns (
 control -> allocation -> the rest of the loop before the write -> the write; then the worst 2 % of steps one
 by one with what they had in common: a collection of the garbage collector inside the window, the lab child's
 CPU inside the window (its world step, render or the fakes' servers on the other core), which plane came
-last, the time since the harness released the frames.
+last, the loop thread's wait on a run queue (its core taken by another task; read outside the window, from
+the frames' release to the write), the time since the harness released the frames.
 
     .venv/bin/python benchmarks/sim_latency.py [--seconds 20] [--in-process] [--stages]
 
@@ -295,6 +296,7 @@ def stages(args: argparse.Namespace) -> int:
     collections: list[tuple[float, float, int]] = []
     gc_started: list[float] = []
     released: list[float] = [0.0]
+    queued: list[int] = [0]
     rows: list[dict[str, Any]] = []
 
     def on_gc(phase: str, info: dict[str, Any]) -> None:
@@ -343,6 +345,8 @@ def stages(args: argparse.Namespace) -> int:
         release = bench.release_frames
 
         def timed_release() -> None:
+            # The loop thread's run-queue wait so far: read before the window opens (the frames are not out).
+            queued[0] = _queued_ns()
             release()
             released[0] = mono()
 
@@ -365,13 +369,23 @@ def stages(args: argparse.Namespace) -> int:
             n = write(data)
             if threading.get_ident() == main_ident and "pair" in current and "written" not in current:
                 current["written"] = mono()
-                current["child_written"] = _clock_ns(child_clock)
             return n
 
+        read_port = port.read
+
+        def timed_read(size: int = 1) -> Any:
+            # The first read after the command's write (for its reply): the window has closed and the driver has
+            # taken its "written" time, so these readings are not in the latency.
+            if threading.get_ident() == main_ident and "written" in current and "queued" not in current:
+                current["child_written"] = _clock_ns(child_clock)
+                current["queued"] = _queued_ns() - queued[0]
+            return read_port(size)
+
         port.write = timed_write
+        port.read = timed_read
 
         def on_step(report: Any, truth: Any) -> None:
-            if report.latency_write_s is None or "written" not in current:
+            if report.latency_write_s is None or "queued" not in current:
                 return
             pair = current["pair"]
             marks = {plane: frame_marks.get((plane, frame.number)) for plane, frame in pair.frames.items()}
@@ -393,6 +407,7 @@ def stages(args: argparse.Namespace) -> int:
                    "skew": abs(marks["p"]["stamp"] - marks["q"]["stamp"]) * 1e3,
                    "since_release": (m["stamp"] - current["released"]) * 1e3,
                    "child_cpu": (current["child_written"] - current["child_got"]) / 1e6,
+                   "runq": current["queued"] / 1e6,
                    "window": (m["stamp"], current["written"])}
             rows.append(row)
 
@@ -417,15 +432,15 @@ def stages(args: argparse.Namespace) -> int:
         values = [r[key] for r in rows]
         print(f"  {label:<36} {_pct(values, 50):7.3f} {_pct(values, 99):7.3f} {max(values, default=math.nan):7.3f}")
     for label, key in (("p/q stamps apart", "skew"), ("lab child CPU, got -> written", "child_cpu"),
-                       ("gc inside the window", "gc")):
+                       ("loop thread on a run queue", "runq"), ("gc inside the window", "gc")):
         values = [r[key] for r in rows]
         print(f"  ({label:<34} {_pct(values, 50):7.3f} {_pct(values, 99):7.3f} {max(values, default=math.nan):7.3f})")
     worst = sorted(rows, key=lambda r: r["latency"])[-max(1, len(rows) // 50):]
     print(f"\nworst {len(worst)} steps (ms): " + " ".join(f"{k[:6]:>6}" for _, k in _STAGES)
-          + "  last   gc  child  since-release")
+          + "  last   gc  child   runq  since-release")
     for r in reversed(worst):
         print(f"  #{r['index']:<5} {r['latency']:6.2f} " + " ".join(f"{r[k]:6.2f}" for _, k in _STAGES)
-              + f"  {r['last']:>4} {r['gc']:5.2f} {r['child_cpu']:6.2f} {r['since_release']:6.2f}")
+              + f"  {r['last']:>4} {r['gc']:5.2f} {r['child_cpu']:6.2f} {r['runq']:6.2f} {r['since_release']:6.2f}")
     return 0
 
 
