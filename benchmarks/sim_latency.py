@@ -26,9 +26,12 @@ control -> allocation -> the rest of the loop before the write -> the write; the
 by one with what they had in common: a collection of the garbage collector inside the window, the lab child's
 CPU inside the window (its world step, render or the fakes' servers on the other core), which plane came
 last, the loop thread's wait on a run queue (its core taken by another task; read outside the window, from
-the frames' release to the write), the time since the harness released the frames.
+the frames' release to the write), the time since the harness released the frames, and the busiest other
+thread of this process from the pair formed to the write (the readings inside the window: the other threads'
+CPU clocks, ~1 us each, by the reader that forms the pair before it wakes the loop, and the lab child's CPU
+clock at the hand-over; ``--record DIR`` records the session as ``appliance sim`` does).
 
-    .venv/bin/python benchmarks/sim_latency.py [--seconds 20] [--in-process] [--stages]
+    .venv/bin/python benchmarks/sim_latency.py [--seconds 20] [--in-process] [--stages [--record DIR]]
 
 ``--in-process`` keeps the simulated lab (world, amplifier fake, tracker fake) in this process, as
 before issue 8's split (where the build has that option). Quote the load (``uptime``) beside the figures.
@@ -124,6 +127,8 @@ def main() -> int:
     parser.add_argument("--seconds", type=float, default=20.0)
     parser.add_argument("--in-process", action="store_true", help="the simulated lab in this process")
     parser.add_argument("--stages", action="store_true", help="wall stamps only; the window stage by stage")
+    parser.add_argument("--record", metavar="DIR", type=Path, default=None,
+                        help="with --stages: record the session into DIR/session.mcap, as appliance sim does")
     args = parser.parse_args()
     if args.stages:
         return stages(args)
@@ -292,6 +297,8 @@ def stages(args: argparse.Namespace) -> int:
     mono = time.monotonic
     frame_marks: dict[tuple[str, int], dict[str, float]] = {}
     pair_marks: dict[int, float] = {}
+    pair_threads: dict[int, dict[int, int]] = {}
+    thread_names: dict[int, str] = {}
     current: dict[str, Any] = {}
     collections: list[tuple[float, float, int]] = []
     gc_started: list[float] = []
@@ -305,7 +312,16 @@ def stages(args: argparse.Namespace) -> int:
         elif gc_started:
             collections.append((gc_started[0], mono(), int(info.get("generation", -1))))
 
+    recorder = None
     with Simulation(session, **options) as sim:
+        if args.record is not None:
+            from appliance.orchestrator import RecordingListener
+            from appliance.recording import Recorder
+
+            recorder = Recorder.create(args.record / "session.mcap", config=session.config.model_dump(mode="json"),
+                                       calibration=sim.devices.calibration.to_dict(),
+                                       frames_every=session.config.recording.frames_every)
+            sim.orchestrator.listeners.append(RecordingListener(recorder))
         lab = getattr(sim.bench.lab, "process", None)
         child_clock = _process_cpu_clock(lab.pid) if lab is not None else None
         stream = sim.devices.frames
@@ -337,7 +353,9 @@ def stages(args: argparse.Namespace) -> int:
             push(frame)
             if pairer.counters.pairs > before:
                 pair_marks[frame.number] = mono()
+                pair_threads[frame.number] = _others()
                 if len(pair_marks) > 64:
+                    pair_threads.pop(next(iter(pair_threads)))
                     pair_marks.pop(next(iter(pair_marks)))
 
         pairer.push = timed_push
@@ -360,6 +378,16 @@ def stages(args: argparse.Namespace) -> int:
             current.update(pair=pair, got=mono(), child_got=_clock_ns(child_clock), released=released[0])
             return pair
 
+        def _others() -> dict[int, int]:
+            # The other threads' CPU clocks (~1 us each), read by the reader that formed the pair, before it
+            # wakes the loop: with the lab child's clock at the hand-over, the only readings inside the window.
+            out = {}
+            for ident, name in _threads().items():
+                if ident != main_ident and (ns := _cpu_ns(ident)) is not None:
+                    out[ident] = ns
+                    thread_names.setdefault(ident, name)
+            return out
+
         frames.next_pair = timed_next_pair
         main_ident = threading.get_ident()
         port = sim.devices.amplifier._port
@@ -379,6 +407,7 @@ def stages(args: argparse.Namespace) -> int:
             if threading.get_ident() == main_ident and "written" in current and "queued" not in current:
                 current["child_written"] = _clock_ns(child_clock)
                 current["queued"] = _queued_ns() - queued[0]
+                current["threads_written"] = _others()
             return read_port(size)
 
         port.write = timed_write
@@ -398,6 +427,7 @@ def stages(args: argparse.Namespace) -> int:
             sent_to_written = st.get("amplifier_write", 0.0) / 1e3
             got_to_written = (current["written"] - current["got"]) * 1e3
             work = (st.get("recognition", 0.0) + st.get("control", 0.0) + st.get("allocation", 0.0)) / 1e3
+            start_threads = pair_threads.get(pair.number, {})
             row = {"index": report.index, "latency": report.latency_write_s * 1e3, "last": last,
                    "handed": (m["handed"] - m["stamp"]) * 1e3, "read": (m["read"] - m["handed"]) * 1e3,
                    "paired": (paired - m["read"]) * 1e3, "got": (current["got"] - paired) * 1e3,
@@ -408,6 +438,8 @@ def stages(args: argparse.Namespace) -> int:
                    "since_release": (m["stamp"] - current["released"]) * 1e3,
                    "child_cpu": (current["child_written"] - current["child_got"]) / 1e6,
                    "runq": current["queued"] / 1e6,
+                   "threads": {ident: (ns - start_threads[ident]) / 1e6
+                               for ident, ns in current["threads_written"].items() if ident in start_threads},
                    "window": (m["stamp"], current["written"])}
             rows.append(row)
 
@@ -416,10 +448,13 @@ def stages(args: argparse.Namespace) -> int:
             result = sim.run(args.seconds, on_step=on_step)
         finally:
             gc.callbacks.remove(on_gc)
+            if recorder is not None:
+                recorder.close()
         stats = sim.orchestrator.stats
+        names = dict(sim.devices.names)
 
     print(f"appliance sim, {args.seconds:g} s simulated, lab {'in process' if args.in_process else 'default'}, "
-          f"wall stamps only; load {os.getloadavg()[0]:.2f}")
+          f"recording {'on' if recorder is not None else 'off'}, wall stamps only; load {os.getloadavg()[0]:.2f}")
     print("\n".join(summary_lines(result, stats)))
     for row in rows:
         start, end = row["window"]
@@ -436,11 +471,26 @@ def stages(args: argparse.Namespace) -> int:
         values = [r[key] for r in rows]
         print(f"  ({label:<34} {_pct(values, 50):7.3f} {_pct(values, 99):7.3f} {max(values, default=math.nan):7.3f})")
     worst = sorted(rows, key=lambda r: r["latency"])[-max(1, len(rows) // 50):]
+    label = {ident: _label(name, names) for ident, name in thread_names.items()}
+    by_thread: dict[str, list[float]] = defaultdict(list)
+    for r in rows:
+        for ident, ms in r["threads"].items():
+            by_thread[label.get(ident, str(ident))].append(ms)
+    print("\nthis process's other threads' CPU, pair formed -> written (ms): mean, p99, mean over the worst steps")
+    for name, values in sorted(by_thread.items(), key=lambda kv: -float(np.mean(kv[1]))):
+        tail = [r["threads"].get(ident, 0.0) for r in worst for ident in r["threads"]
+                if label.get(ident, str(ident)) == name]
+        print(f"  {name:<44} {np.mean(values):7.3f} {_pct(values, 99):7.3f} "
+              f"{(sum(tail) / len(worst)) if worst else math.nan:7.3f}")
+    for r in rows:
+        busiest = max(r["threads"].items(), key=lambda kv: kv[1], default=(None, 0.0))
+        r["busiest"] = (label.get(busiest[0], "-") if busiest[0] is not None else "-", busiest[1])
     print(f"\nworst {len(worst)} steps (ms): " + " ".join(f"{k[:6]:>6}" for _, k in _STAGES)
-          + "  last   gc  child   runq  since-release")
+          + "  last   gc  child   runq  since-release  busiest other thread")
     for r in reversed(worst):
         print(f"  #{r['index']:<5} {r['latency']:6.2f} " + " ".join(f"{r[k]:6.2f}" for _, k in _STAGES)
-              + f"  {r['last']:>4} {r['gc']:5.2f} {r['child_cpu']:6.2f} {r['runq']:6.2f} {r['since_release']:6.2f}")
+              + f"  {r['last']:>4} {r['gc']:5.2f} {r['child_cpu']:6.2f} {r['runq']:6.2f} {r['since_release']:6.2f}"
+              + f"         {r['busiest'][0]} {r['busiest'][1]:.2f}")
     return 0
 
 
