@@ -127,6 +127,8 @@ def main() -> int:
     parser.add_argument("--seconds", type=float, default=20.0)
     parser.add_argument("--in-process", action="store_true", help="the simulated lab in this process")
     parser.add_argument("--stages", action="store_true", help="wall stamps only; the window stage by stage")
+    parser.add_argument("--switch-interval", metavar="S", type=float, default=None,
+                        help="with --stages: the interpreter's thread switch interval (sys.setswitchinterval) to run with")
     parser.add_argument("--record", metavar="DIR", type=Path, default=None,
                         help="with --stages: record the session into DIR/session.mcap, as appliance sim does")
     args = parser.parse_args()
@@ -313,6 +315,8 @@ def stages(args: argparse.Namespace) -> int:
             collections.append((gc_started[0], mono(), int(info.get("generation", -1))))
 
     recorder = None
+    if args.switch_interval is not None:
+        sys.setswitchinterval(args.switch_interval)
     with Simulation(session, **options) as sim:
         if args.record is not None:
             from appliance.orchestrator import RecordingListener
@@ -454,7 +458,8 @@ def stages(args: argparse.Namespace) -> int:
         names = dict(sim.devices.names)
 
     print(f"appliance sim, {args.seconds:g} s simulated, lab {'in process' if args.in_process else 'default'}, "
-          f"recording {'on' if recorder is not None else 'off'}, wall stamps only; load {os.getloadavg()[0]:.2f}")
+          f"recording {'on' if recorder is not None else 'off'}, switch interval {sys.getswitchinterval() * 1e3:g} ms, "
+          f"wall stamps only; load {os.getloadavg()[0]:.2f}")
     print("\n".join(summary_lines(result, stats)))
     for row in rows:
         start, end = row["window"]
