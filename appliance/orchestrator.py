@@ -5,7 +5,8 @@ monotonic clock (the real one on a bench, the simulated one in simulation); devi
 hand over their newest data (the biplane stream's newest pair, the optical tracker's newest frame, the
 amplifier driver's fault events). Every step's stages are timed on the wall clock, and the latency from
 "the later frame of the pair is on the host" to "the current command is written to the amplifier" is
-measured, as on a bench.
+measured, as on a bench. Nothing that can wait runs before the write (safety events, the report, the
+listeners, the side channels come after it), and the cyclic garbage collector is held off until the write.
 
 Safety: a recognised posture the robot cannot have reached from the last accepted one at the speed
 limit (plus ``JUMP_MARGIN_MM``) is rejected as lost - when the robot leaves the images, recognition
@@ -34,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from appliance.compiled import warm_up_all
+from appliance import compiled
 from appliance.control import CurrentAllocator, Mode, PathFollower, SafetySupervisor
 from appliance.errors import ApplianceError, DeviceError, DeviceFaultError, DeviceTimeoutError, InputDataError
 from appliance.geometry import Calibration, dark_level_of
@@ -135,6 +136,7 @@ class Orchestrator:
         self._events_lock = threading.Lock()
         self._shut = False
         self._safety_seen = 0
+        self._collector_held = False
 
     # -- lifecycle ----------------------------------------------------------------------------------
     def __enter__(self) -> Orchestrator:
@@ -171,7 +173,7 @@ class Orchestrator:
                 raise DeviceTimeoutError(f"optical tracker {self.names.get('ots', '')}: {err}") from err
         # Every compiled kernel (recognition, control) now, while the output is still off: no frame
         # pays for compilation (a first call can take seconds; from the on-disk cache, milliseconds).
-        warm_up_all()
+        compiled.warm_up_all()
         self._rehearse(pair)
         collect_and_freeze_session()
         # A pair that came in during the start-up (or the collection) is stale now: the first step waits for a fresh one
@@ -221,9 +223,30 @@ class Orchestrator:
 
     # -- the step -----------------------------------------------------------------------------------
     def step(self) -> FrameReport:
-        """One frame: wait for the newest pair, recognise, decide, allocate, command; listeners see the result."""
+        """One frame: wait for the newest pair, recognise, decide, allocate, command; listeners see the result.
+
+        The cyclic garbage collector is held off from the start of the step to the command's write (or, on
+        a latched stop, to the output switched off): a collection falls due at an allocation of whichever
+        thread, and between the pair's arrival and the write it would be paid inside the loop's latency.
+        Held, it runs at the first allocation after the write instead (the report, the listeners), with
+        what it would have collected. A collector the caller switched off stays off."""
         if not self.running:
             raise DeviceError(f"the loop is not running ({self.stop_reason or 'not started'})")
+        self._collector_held = gc.isenabled()
+        if self._collector_held:
+            gc.disable()
+        try:
+            return self._step()
+        finally:
+            self._resume_collector()
+
+    def _resume_collector(self) -> None:
+        """Let the collector run again if the step held it off (idempotent)."""
+        if self._collector_held:
+            self._collector_held = False
+            gc.enable()
+
+    def _step(self) -> FrameReport:
         stages: dict[str, float] = {}
         began = time.perf_counter()
         self.stats.steps += 1
@@ -304,6 +327,7 @@ class Orchestrator:
         except DeviceError as err:
             return self._latch("amplifier", f"amplifier link: {err}", stages=stages, link_lost=True)
         acked = time.monotonic()
+        self._resume_collector()   # what fell due since the step began is collected from here on, after the command
         # The driver's clock is time.monotonic (the frames' host clock) unless a test injected another.
         written = result.written_at_s if sent <= result.written_at_s <= acked else sent
         stages["amplifier"] = (acked - sent) * 1e6
@@ -409,6 +433,7 @@ class Orchestrator:
                 self.amplifier.disable()
             except ApplianceError as err:
                 log.error("stop: could not disable the amplifier output: %s", err)
+        self._resume_collector()
         self.running = False
         self.stop_reason = reason
         log.warning("loop stopped at t = %.3f s: %s", now, reason)

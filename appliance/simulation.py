@@ -8,6 +8,11 @@ the real transports (fake USB grabbers -> pyusb -> USB grabber driver -> biplane
 the robot, and commands the amplifier over its pty. The grabbers see the frames of a world step only
 when the loop asks for its pair (as on a bench, where the loop is waiting when a pair comes in), so the
 measured latency from a pair on the host to the command written is the appliance's, not the harness's.
+Each grabber streams its frame over a modelled USB 3 link (``device_factory``: ~3 ms for 768 x 672 mono16,
+in the driver's 64 KiB transfers), so a frame is on the host when its last transfer is in, and its earlier
+transfers were checked while the later ones were on the wire, as from a real grabber. Nothing of the lab
+runs between the pair's arrival and the command: the world is stepped before the frames are released,
+and an exposure is rendered when its grabber reads it out, before its transfers.
 The simulated lab - world, amplifier fake, tracker fake and X-ray renderer - runs in one child process
 (other machines on a bench; ``separate_lab=False`` keeps it in this one): this process has only the
 amplifier's and the tracker's ptys and the grabbers' USB backend, and the harness steps the world and reads
@@ -38,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from appliance.compiled import warm_up_all
+from appliance import compiled
 from appliance.control import ActuationModel, CurrentAllocator, PathFollower, SafetySupervisor, load_coils, load_path
 from appliance.device_factory import Devices, open_devices
 from appliance.errors import ConfigError, DeviceError
@@ -183,7 +188,7 @@ class Simulation:
             # (which would do it otherwise) runs with the world following the wall clock, and after a
             # cold compile (minutes on a loaded machine) the world's catch-up would outlast the start
             # and hold the amplifier fake's lock while the loop waits for its replies.
-            warm_up_all()
+            compiled.warm_up_all()
             # While simulated time stands still; the orchestrator's start does it again (only what was made
             # since to scan) before the output goes on.
             collect_and_freeze_session()

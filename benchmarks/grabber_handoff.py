@@ -2,7 +2,7 @@
 bulk transfer that completes a frame (where the driver stamps the frame's host time) to the frame handed on
 by ``read`` (payload CRC checked, assembled, wrapped as a numpy frame), per frame, in thread CPU and wall time.
 
-    .venv/bin/python benchmarks/grabber_handoff.py [--frames 400] [--sizes 1024x1024,768x672] [--transfers 1024,256]
+    .venv/bin/python benchmarks/grabber_handoff.py [--frames 400] [--sizes 1024x1024,768x672] [--transfers 64,1024]
 
 The real driver reads the fake pyusb backend unpaced (``realtime=False``), one frame per ``read``; each row
 is a frame size and a bulk transfer size (with 1024 KiB transfers a 768x672 mono16 frame, 1.03 MB, is one
@@ -63,7 +63,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=400)
     parser.add_argument("--sizes", default="1024x1024,768x672")
-    parser.add_argument("--transfers", default="1024,256", help="bulk transfer sizes, KiB")
+    parser.add_argument("--transfers", default="64,1024", help="bulk transfer sizes, KiB (the driver's default: 64)")
     parser.add_argument("--hold", type=int, default=3, help="frames the consumer keeps")
     args = parser.parse_args()
     print(f"grabber hand-off, {args.frames} frames per row, mono16, consumer holds {args.hold}; "

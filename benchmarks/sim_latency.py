@@ -18,7 +18,20 @@ an upper bound of the GIL time they took from the loop). Also each thread's CPU 
 run, the harness's world step (``advance_to``, in the loop's thread, between steps) and, when the
 simulated lab runs in a child process, the child processes' CPU per step.
 
-    .venv/bin/python benchmarks/sim_latency.py [--seconds 20] [--in-process]
+With ``--stages`` it takes only wall-clock stamps inside the window (no thread-CPU snapshots, which cost
+~10-30 us each there) and prints the window stage by stage, p50 and p99 of each: stamp -> the driver hands the
+frame on (the payload CRC of what came after the stamp, assembly) -> ``read`` returns (the source's checks and
+counters) -> the pair formed in the pairer -> the loop's ``next_pair`` returns (its wake-up) -> recognition ->
+control -> allocation -> the rest of the loop before the write -> the write; then the worst 2 % of steps one
+by one with what they had in common: a collection of the garbage collector inside the window, the lab child's
+CPU inside the window (its world step, render or the fakes' servers on the other core), which plane came
+last, the loop thread's wait on a run queue (its core taken by another task; read outside the window, from
+the frames' release to the write), the time since the harness released the frames, and the busiest other
+thread of this process from the pair formed to the write (the readings inside the window: the other threads'
+CPU clocks, ~1 us each, by the reader that forms the pair before it wakes the loop, and the lab child's CPU
+clock at the hand-over; ``--record DIR`` records the session as ``appliance sim`` does).
+
+    .venv/bin/python benchmarks/sim_latency.py [--seconds 20] [--in-process] [--stages [--record DIR]]
 
 ``--in-process`` keeps the simulated lab (world, amplifier fake, tracker fake) in this process, as
 before issue 8's split (where the build has that option). Quote the load (``uptime``) beside the figures.
@@ -26,7 +39,10 @@ before issue 8's split (where the build has that option). Quote the load (``upti
 from __future__ import annotations
 
 import argparse
+import ctypes
+import gc
 import inspect
+import math
 import os
 import sys
 import threading
@@ -110,7 +126,14 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=20.0)
     parser.add_argument("--in-process", action="store_true", help="the simulated lab in this process")
+    parser.add_argument("--stages", action="store_true", help="wall stamps only; the window stage by stage")
+    parser.add_argument("--switch-interval", metavar="S", type=float, default=None,
+                        help="with --stages: the interpreter's thread switch interval (sys.setswitchinterval) to run with")
+    parser.add_argument("--record", metavar="DIR", type=Path, default=None,
+                        help="with --stages: record the session into DIR/session.mcap, as appliance sim does")
     args = parser.parse_args()
+    if args.stages:
+        return stages(args)
     data = read_yaml(config_path("sim.yaml"))
     data["recording"]["enabled"] = False
     session = session_from_mapping(data, config_path("sim.yaml"))
@@ -236,6 +259,243 @@ def main() -> int:
     print(f"  {'child processes':<44} {children_cpu * 1e3 / n:7.3f}")
     print(f"  harness world step (advance_to, loop thread) CPU {np.median(world_cpu):.2f} ms p50, "
           f"wall {np.median(world_wall):.2f} ms p50 / {_pct(world_wall, 99):.2f} p99")
+    return 0
+
+
+_LIBC = ctypes.CDLL(None, use_errno=True)
+
+
+class _Timespec(ctypes.Structure):
+    _fields_ = [("tv_sec", ctypes.c_long), ("tv_nsec", ctypes.c_long)]
+
+
+def _process_cpu_clock(pid: int) -> int | None:
+    """The CPU-time clock id of process ``pid`` (clock_getcpuclockid), or None."""
+    clock = ctypes.c_int()
+    return clock.value if _LIBC.clock_getcpuclockid(pid, ctypes.byref(clock)) == 0 else None
+
+
+def _clock_ns(clock: int | None) -> int:
+    if clock is None:
+        return 0
+    ts = _Timespec()
+    return ts.tv_sec * 1_000_000_000 + ts.tv_nsec if _LIBC.clock_gettime(clock, ctypes.byref(ts)) == 0 else 0
+
+
+_STAGES = (("stamp -> driver hands it on", "handed"), ("  -> read returns", "read"),
+           ("  -> pair formed", "paired"), ("  -> loop's next_pair returns", "got"),
+           ("recognition", "recognition"), ("control", "control"), ("allocation", "allocation"),
+           ("loop's rest before the write", "glue"), ("write (sent -> written)", "write"))
+
+
+def stages(args: argparse.Namespace) -> int:
+    """``--stages``: wall stamps only inside the window; the window stage by stage and its worst steps."""
+    data = read_yaml(config_path("sim.yaml"))
+    data["recording"]["enabled"] = False
+    session = session_from_mapping(data, config_path("sim.yaml"))
+    options: dict[str, Any] = {}
+    if "separate_lab" in inspect.signature(Simulation.__init__).parameters:
+        options["separate_lab"] = not args.in_process
+    mono = time.monotonic
+    frame_marks: dict[tuple[str, int], dict[str, float]] = {}
+    pair_marks: dict[int, float] = {}
+    pair_threads: dict[int, dict[int, int]] = {}
+    thread_names: dict[int, str] = {}
+    current: dict[str, Any] = {}
+    collections: list[tuple[float, float, int]] = []
+    gc_started: list[float] = []
+    released: list[float] = [0.0]
+    queued: list[int] = [0]
+    rows: list[dict[str, Any]] = []
+
+    def on_gc(phase: str, info: dict[str, Any]) -> None:
+        if phase == "start":
+            gc_started[:] = [mono()]
+        elif gc_started:
+            collections.append((gc_started[0], mono(), int(info.get("generation", -1))))
+
+    recorder = None
+    if args.switch_interval is not None:
+        sys.setswitchinterval(args.switch_interval)
+    with Simulation(session, **options) as sim:
+        if args.record is not None:
+            from appliance.orchestrator import RecordingListener
+            from appliance.recording import Recorder
+
+            recorder = Recorder.create(args.record / "session.mcap", config=session.config.model_dump(mode="json"),
+                                       calibration=sim.devices.calibration.to_dict(),
+                                       frames_every=session.config.recording.frames_every)
+            sim.orchestrator.listeners.append(RecordingListener(recorder))
+        lab = getattr(sim.bench.lab, "process", None)
+        child_clock = _process_cpu_clock(lab.pid) if lab is not None else None
+        stream = sim.devices.frames
+        for source in stream.sources.values():
+            original_to_frame, original_read = source._to_frame, source.read
+
+            def to_frame(assembled: Any, host_time: float, original: Any = original_to_frame) -> Any:
+                frame = original(assembled, host_time)
+                frame_marks[(frame.plane, frame.number)] = {"stamp": host_time, "handed": mono()}
+                return frame
+
+            def read(timeout_s: float, original: Any = original_read) -> Any:
+                frame = original(timeout_s)
+                marks = frame_marks.get((frame.plane, frame.number))
+                if marks is not None:
+                    marks["read"] = mono()
+                if len(frame_marks) > 64:
+                    frame_marks.pop(next(iter(frame_marks)))
+                return frame
+
+            if hasattr(source, "_to_frame"):
+                source._to_frame = to_frame
+            source.read = read
+        pairer = stream.pairer
+        push = pairer.push
+
+        def timed_push(frame: Any) -> None:
+            before = pairer.counters.pairs
+            push(frame)
+            if pairer.counters.pairs > before:
+                pair_marks[frame.number] = mono()
+                pair_threads[frame.number] = _others()
+                if len(pair_marks) > 64:
+                    pair_threads.pop(next(iter(pair_threads)))
+                    pair_marks.pop(next(iter(pair_marks)))
+
+        pairer.push = timed_push
+        bench = sim.bench
+        release = bench.release_frames
+
+        def timed_release() -> None:
+            # The loop thread's run-queue wait so far: read before the window opens (the frames are not out).
+            queued[0] = _queued_ns()
+            release()
+            released[0] = mono()
+
+        bench.release_frames = timed_release
+        frames = sim.frames
+        next_pair = frames.next_pair
+
+        def timed_next_pair(timeout_s: float) -> Any:
+            pair = next_pair(timeout_s)
+            current.clear()
+            current.update(pair=pair, got=mono(), child_got=_clock_ns(child_clock), released=released[0])
+            return pair
+
+        def _others() -> dict[int, int]:
+            # The other threads' CPU clocks (~1 us each), read by the reader that formed the pair, before it
+            # wakes the loop: with the lab child's clock at the hand-over, the only readings inside the window.
+            out = {}
+            for ident, name in _threads().items():
+                if ident != main_ident and (ns := _cpu_ns(ident)) is not None:
+                    out[ident] = ns
+                    thread_names.setdefault(ident, name)
+            return out
+
+        frames.next_pair = timed_next_pair
+        main_ident = threading.get_ident()
+        port = sim.devices.amplifier._port
+        write = port.write
+
+        def timed_write(data: bytes) -> Any:
+            n = write(data)
+            if threading.get_ident() == main_ident and "pair" in current and "written" not in current:
+                current["written"] = mono()
+            return n
+
+        read_port = port.read
+
+        def timed_read(size: int = 1) -> Any:
+            # The first read after the command's write (for its reply): the window has closed and the driver has
+            # taken its "written" time, so these readings are not in the latency.
+            if threading.get_ident() == main_ident and "written" in current and "queued" not in current:
+                current["child_written"] = _clock_ns(child_clock)
+                current["queued"] = _queued_ns() - queued[0]
+                current["threads_written"] = _others()
+            return read_port(size)
+
+        port.write = timed_write
+        port.read = timed_read
+
+        def on_step(report: Any, truth: Any) -> None:
+            if report.latency_write_s is None or "queued" not in current:
+                return
+            pair = current["pair"]
+            marks = {plane: frame_marks.get((plane, frame.number)) for plane, frame in pair.frames.items()}
+            if any(m is None or "read" not in m for m in marks.values()):
+                return
+            last = max(marks, key=lambda plane: marks[plane]["stamp"])
+            m = marks[last]
+            st = report.stages_us
+            paired = pair_marks.get(pair.number, m["read"])
+            sent_to_written = st.get("amplifier_write", 0.0) / 1e3
+            got_to_written = (current["written"] - current["got"]) * 1e3
+            work = (st.get("recognition", 0.0) + st.get("control", 0.0) + st.get("allocation", 0.0)) / 1e3
+            start_threads = pair_threads.get(pair.number, {})
+            row = {"index": report.index, "latency": report.latency_write_s * 1e3, "last": last,
+                   "handed": (m["handed"] - m["stamp"]) * 1e3, "read": (m["read"] - m["handed"]) * 1e3,
+                   "paired": (paired - m["read"]) * 1e3, "got": (current["got"] - paired) * 1e3,
+                   "recognition": st.get("recognition", 0.0) / 1e3, "control": st.get("control", 0.0) / 1e3,
+                   "allocation": st.get("allocation", 0.0) / 1e3,
+                   "glue": got_to_written - work - sent_to_written, "write": sent_to_written,
+                   "skew": abs(marks["p"]["stamp"] - marks["q"]["stamp"]) * 1e3,
+                   "since_release": (m["stamp"] - current["released"]) * 1e3,
+                   "child_cpu": (current["child_written"] - current["child_got"]) / 1e6,
+                   "runq": current["queued"] / 1e6,
+                   "threads": {ident: (ns - start_threads[ident]) / 1e6
+                               for ident, ns in current["threads_written"].items() if ident in start_threads},
+                   "window": (m["stamp"], current["written"])}
+            rows.append(row)
+
+        gc.callbacks.append(on_gc)
+        try:
+            result = sim.run(args.seconds, on_step=on_step)
+        finally:
+            gc.callbacks.remove(on_gc)
+            if recorder is not None:
+                recorder.close()
+        stats = sim.orchestrator.stats
+        names = dict(sim.devices.names)
+
+    print(f"appliance sim, {args.seconds:g} s simulated, lab {'in process' if args.in_process else 'default'}, "
+          f"recording {'on' if recorder is not None else 'off'}, switch interval {sys.getswitchinterval() * 1e3:g} ms, "
+          f"wall stamps only; load {os.getloadavg()[0]:.2f}")
+    print("\n".join(summary_lines(result, stats)))
+    for row in rows:
+        start, end = row["window"]
+        row["gc"] = sum((min(b, end) - max(a, start)) * 1e3 for a, b, _ in collections if a < end and b > start)
+    print(f"\nsteps measured {len(rows)}; frame on host (the later plane's stamp: its last bulk transfer returned) "
+          f"-> command written, ms: p50 / p99 / max")
+    print(f"  {'frame on host -> written':<36} {_pct([r['latency'] for r in rows], 50):7.3f} "
+          f"{_pct([r['latency'] for r in rows], 99):7.3f} {max((r['latency'] for r in rows), default=math.nan):7.3f}")
+    for label, key in _STAGES:
+        values = [r[key] for r in rows]
+        print(f"  {label:<36} {_pct(values, 50):7.3f} {_pct(values, 99):7.3f} {max(values, default=math.nan):7.3f}")
+    for label, key in (("p/q stamps apart", "skew"), ("lab child CPU, got -> written", "child_cpu"),
+                       ("loop thread on a run queue", "runq"), ("gc inside the window", "gc")):
+        values = [r[key] for r in rows]
+        print(f"  ({label:<34} {_pct(values, 50):7.3f} {_pct(values, 99):7.3f} {max(values, default=math.nan):7.3f})")
+    worst = sorted(rows, key=lambda r: r["latency"])[-max(1, len(rows) // 50):]
+    label = {ident: _label(name, names) for ident, name in thread_names.items()}
+    by_thread: dict[str, list[float]] = defaultdict(list)
+    for r in rows:
+        for ident, ms in r["threads"].items():
+            by_thread[label.get(ident, str(ident))].append(ms)
+    print("\nthis process's other threads' CPU, pair formed -> written (ms): mean, p99, mean over the worst steps")
+    for name, values in sorted(by_thread.items(), key=lambda kv: -float(np.mean(kv[1]))):
+        tail = [r["threads"].get(ident, 0.0) for r in worst for ident in r["threads"]
+                if label.get(ident, str(ident)) == name]
+        print(f"  {name:<44} {np.mean(values):7.3f} {_pct(values, 99):7.3f} "
+              f"{(sum(tail) / len(worst)) if worst else math.nan:7.3f}")
+    for r in rows:
+        busiest = max(r["threads"].items(), key=lambda kv: kv[1], default=(None, 0.0))
+        r["busiest"] = (label.get(busiest[0], "-") if busiest[0] is not None else "-", busiest[1])
+    print(f"\nworst {len(worst)} steps (ms): " + " ".join(f"{k[:6]:>6}" for _, k in _STAGES)
+          + "  last   gc  child   runq  since-release  busiest other thread")
+    for r in reversed(worst):
+        print(f"  #{r['index']:<5} {r['latency']:6.2f} " + " ".join(f"{r[k]:6.2f}" for _, k in _STAGES)
+              + f"  {r['last']:>4} {r['gc']:5.2f} {r['child_cpu']:6.2f} {r['runq']:6.2f} {r['since_release']:6.2f}"
+              + f"         {r['busiest'][0]} {r['busiest'][1]:.2f}")
     return 0
 
 

@@ -11,12 +11,16 @@ pulls bulk transfers of any size into a :class:`~firmware_protocol.usb_grabber.F
 hands on only frames whose header and payload CRCs check out (the payload CRC runs transfer by transfer, so
 after the last one only its own bytes are checked). Transfers land in pooled buffers lent to the assembler:
 a frame inside one transfer is handed on as a view on it, and a buffer is read into again only once no
-frame or array refers to it. Corrupt headers, bad CRCs and truncated
+frame or array refers to it. Transfers are 64 KiB unless the URL asks otherwise (``transfer_kib``): a
+frame streams in over many of them at the link's rate, and each is checked as it comes, so when the last
+byte is in (the frame's host time is stamped when the transfer holding it returns) only that transfer's
+bytes are left to check - with one transfer per frame, the whole frame's CRC (~250 us for 1 MB) would come
+after the stamp, inside the loop's latency. Corrupt headers, bad CRCs and truncated
 frames are counted (``counters.corrupt``, details in :attr:`UsbGrabber.link_stats`) and skipped; an
 endpoint stall is cleared (CLEAR_FEATURE(HALT)) and the stream resumes at the next frame; a transfer
 timeout just means no bytes yet. A vanished device raises :class:`LinkLostError`.
 
-URL: ``usb://VID:PID[?serial=S&plane=p&rate=30&exposure_ms=5&transfer_kib=1024]`` (hex VID:PID).
+URL: ``usb://VID:PID[?serial=S&plane=p&rate=30&exposure_ms=5&transfer_kib=64]`` (hex VID:PID).
 """
 from __future__ import annotations
 
@@ -47,6 +51,9 @@ from firmware_protocol import usb_grabber as proto
 from firmware_protocol.errors import FrameError
 
 log = logging.getLogger(__name__)
+
+#: Bulk transfer size unless the URL sets ``transfer_kib`` (see the module docstring).
+DEFAULT_TRANSFER_BYTES = 64 * 1024
 
 UDEV_HINT = ("install the udev rule config/udev/99-xray-grabber.rules (sudo cp it to /etc/udev/rules.d/, "
              "then `sudo udevadm control --reload && sudo udevadm trigger`) and add your user to group 'plugdev'")
@@ -137,7 +144,7 @@ class UsbGrabber(FrameSource):
     """One USB grabber as a frame source (see the module docstring)."""
 
     def __init__(self, device: usb.core.Device, *, plane: str | None = None, rate_hz: float | None = None,
-                 exposure_s: float | None = None, transfer_size: int = 1 << 20, poll_s: float = 0.05,
+                 exposure_s: float | None = None, transfer_size: int = DEFAULT_TRANSFER_BYTES, poll_s: float = 0.05,
                  max_queued: int = 4, name: str | None = None) -> None:
         serial = _serial_of(device)
         label = name or f"usb:{device.idVendor:04x}:{device.idProduct:04x}" + (f"/{serial}" if serial else "")
@@ -329,7 +336,8 @@ def usb_source_from_url(url: SourceUrl, *, backend: Any = None, **options: Any) 
     kwargs: dict[str, Any] = {
         "plane": url.take("plane"), "rate_hz": query_float(url, "rate", None),
         "exposure_s": None if exposure_ms is None else exposure_ms / 1000.0,
-        "transfer_size": (query_int(url, "transfer_kib", 1024) or 1024) * 1024,
+        "transfer_size": (query_int(url, "transfer_kib", DEFAULT_TRANSFER_BYTES // 1024)
+                          or DEFAULT_TRANSFER_BYTES // 1024) * 1024,
     }
     kwargs.update(options)
     return UsbGrabber(device, **kwargs)

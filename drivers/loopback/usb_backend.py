@@ -10,20 +10,27 @@ rendered scene of ``loopback_grabber.SceneFeed``) in the byte format of ``firmwa
 Device behaviour modelled: frames become available at their exposure time plus exposure on an injected
 clock (``realtime=True``) or at once (``realtime=False``, for throughput); a bulk-IN transfer ends at the
 end of a frame (the short packet that ends a USB transfer) or when the host's buffer is full, so frames
-span transfers; a small on-device buffer overruns when the host does not read (counted in GET_STATUS);
+span transfers; with ``link_bytes_per_s`` the bytes cross the link at that rate on the wall clock (a
+transfer returns once its last byte could have arrived: the link carries a frame's bytes only from the
+moment the frame is read out and a transfer is pending, and one transfer after the other), so the host
+checks a frame's earlier transfers while its later ones are still on the wire, as with a real link;
+without it (the default) a transfer returns as soon as the host asks (throughput bound by the host); a
+small on-device buffer overruns when the host does not read (counted in GET_STATUS);
 STOP discards the frame in flight. Injected faults, per frame number (:meth:`FakeGrabberDevice.schedule`)
 or at random (``fault_rates``): a corrupt header, a bad payload CRC, a truncated frame, random short
 transfers, garbage between frames, an endpoint stall (EPIPE until CLEAR_FEATURE(HALT), then the device
 resumes at the next frame) and a transfer timeout. Host-side conditions: permission denied on open,
 the interface already claimed (busy), and unplugging (ENODEV from then on).
 
-Not modelled: zero-length packets at frame ends that fill a whole number of packets, USB bandwidth
-limits (throughput is host-bound), alternate settings, hot-plug events, interrupt endpoints.
+Not modelled: zero-length packets at frame ends that fill a whole number of packets, the bus's packet
+scheduling (``link_bytes_per_s`` is one steady rate per device), alternate settings, hot-plug events,
+interrupt endpoints.
 """
 from __future__ import annotations
 
 import errno
 import logging
+import math
 import threading
 import time
 import zlib
@@ -109,10 +116,18 @@ class FakeGrabberDevice:
                  product_id: int = proto.PRODUCT_ID, realtime: bool = True, buffer_frames: int = 4,
                  fault_rates: dict[Fault, float] | None = None, seed: int | None = None,
                  clock: Callable[[], float] = time.monotonic, sleep: Callable[[float], None] = time.sleep,
-                 bus: int = 1, address: int = 5) -> None:
+                 bus: int = 1, address: int = 5, link_bytes_per_s: float | None = None,
+                 link_clock: Callable[[], float] = time.monotonic,
+                 link_sleep: Callable[[float], None] = time.sleep) -> None:
+        if link_bytes_per_s is not None and not link_bytes_per_s > 0:
+            raise ValueError(f"link_bytes_per_s must be > 0 (or None: unpaced), got {link_bytes_per_s}")
         self.feed = feed
         self.serial = serial
         self.realtime = realtime
+        self.link_bytes_per_s = link_bytes_per_s
+        # The link's time is the wall clock (injectable for tests): it is about the host's CPU keeping up.
+        self._link_clock, self._link_sleep = link_clock, link_sleep
+        self._link_free = -math.inf      # link clock reading when the link has carried all it was given
         self.buffer_frames = buffer_frames
         self.fault_rates = dict(fault_rates or {})
         self._rng = np.random.default_rng(seed)
@@ -209,9 +224,12 @@ class FakeGrabberDevice:
 
     # -- bulk IN ---------------------------------------------------------------------------------
     def bulk_read(self, buffer: memoryview, timeout_ms: int) -> int:
-        """Fill ``buffer`` with the next transfer (at most to the end of the current frame); returns its length."""
+        """Fill ``buffer`` with the next transfer (at most to the end of the current frame); returns its length.
+        With ``link_bytes_per_s`` it returns once the transfer's bytes could have crossed the link."""
         deadline = time.monotonic() + (timeout_ms / 1000.0 if timeout_ms else 3600.0)
+        submitted = self._link_clock()
         while True:
+            on_wire = False
             with self._lock:
                 if self.unplugged:
                     raise _usb_error(errno.ENODEV, "No such device (it may have been disconnected)")
@@ -220,8 +238,18 @@ class FakeGrabberDevice:
                 if self.streaming:
                     if self._offset >= self._length:
                         wait = self._load_next_frame()
+                        if wait <= 0:
+                            # The frame's bytes start on the link now (it was just read out), not before.
+                            self._link_free = max(self._link_free, self._link_clock())
                     else:
                         wait = 0.0
+                    if wait <= 0 and self.link_bytes_per_s is not None:
+                        size = min(len(buffer), self._length - self._offset)
+                        done = max(submitted, self._link_free) + size / self.link_bytes_per_s
+                        wait = done - self._link_clock()
+                        on_wire = wait > 0
+                        if not on_wire:
+                            self._link_free = done
                     if wait <= 0:
                         return self._send(buffer)
                 else:
@@ -229,7 +257,8 @@ class FakeGrabberDevice:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 raise _usb_error(errno.ETIMEDOUT, "Operation timed out")
-            self._sleep(min(wait, remaining, 0.05))
+            # Bytes on the wire take real time; waiting for an exposure follows the injected clock.
+            (self._link_sleep if on_wire else self._sleep)(min(wait, remaining, 0.05))
 
     def clear_halt(self) -> None:
         with self._lock:

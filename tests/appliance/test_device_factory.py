@@ -104,6 +104,12 @@ def test_loopback_devices_sit_on_real_transports_and_share_one_world(separate_la
         sim.step(0.1)
         pair = devices.frames.next_pair(2.0)
         assert pair.p.image.shape == (224, 256) and pair.p.number == pair.q.number
+        # Each plane streams over its modelled link in the driver's transfers: a 256 x 224 mono16 frame
+        # (115 kB) is more than one, so the host checks the first while the second is on the wire.
+        for plane, source in devices.frames.sources.items():
+            assert sim.grabber_devices[plane].link_bytes_per_s is not None
+            assert isinstance(source, UsbGrabber)
+            assert source.link_stats.transfers >= 2 * source.counters.frames > 0
         # The world moves with the amplifier's MEASURED currents: none yet, so no field at the robot.
         np.testing.assert_allclose(sim.world.last_field_t, 0.0)
         with sim.real_time():

@@ -104,6 +104,48 @@ def test_the_loop_runs_with_the_sessions_objects_frozen_out_of_the_collector() -
     assert counts.in_loop and min(counts.in_loop) > counts.at_start // 2
 
 
+def test_the_collector_is_held_off_from_the_steps_start_to_the_write_and_not_after() -> None:
+    seen: dict[str, list[tuple[int, bool]]] = {"recognition": [], "command": [], "listener": []}
+
+    class Enabled(LoopListener):
+        def on_frame(self, report: FrameReport) -> None:
+            seen["listener"].append((report.index, gc.isenabled()))
+
+    with Simulation(small_session(), [Enabled()]) as sim:
+        orchestrator = sim.orchestrator
+        process, set_currents = orchestrator.tracker.process, orchestrator.amplifier.set_currents
+
+        def watched(name: str, call: Any) -> Any:
+            def inner(*args: Any, **kwargs: Any) -> Any:
+                if orchestrator.running:                   # not the start-up's rehearsal
+                    seen[name].append((orchestrator.stats.steps, gc.isenabled()))
+                return call(*args, **kwargs)
+            return inner
+
+        orchestrator.tracker.process = watched("recognition", process)   # type: ignore[method-assign]
+        orchestrator.amplifier.set_currents = watched("command", set_currents)   # type: ignore[method-assign]
+
+        def on_step(report: FrameReport, truth: Any) -> None:
+            if report.index == 3:
+                gc.disable()                               # a caller's choice is left alone ...
+            elif report.index == 4:
+                gc.enable()
+            elif report.index == 8:
+                orchestrator.request_stop("operator stop")
+
+        try:
+            sim.run(1.0, on_step=on_step)
+        finally:
+            gc.enable()
+        assert orchestrator.stop_reason == "operator stop"
+    assert len(seen["recognition"]) == len(seen["command"]) == 8
+    assert not any(enabled for _, enabled in seen["recognition"] + seen["command"])
+    # After the write the collector runs again (the listeners see it on), also after the latched stop (step 9) ...
+    assert [enabled for index, enabled in seen["listener"] if index != 4] == [True] * 8
+    # ... except where the caller had switched it off: then the step does not switch it on.
+    assert dict(seen["listener"])[4] is False
+
+
 def test_a_failing_listener_stops_the_loop_and_the_coils_still_go_to_zero() -> None:
     collector = Collector(fail_at=5)
     with Simulation(small_session(), [collector]) as sim:

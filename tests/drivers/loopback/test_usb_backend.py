@@ -89,3 +89,55 @@ def test_short_transfers_and_unplug(setup: tuple) -> None:
         dev.read(0x81, 4096, timeout=100)
     assert info.value.errno == errno.ENODEV
     assert usb.core.find(idVendor=proto.VENDOR_ID, backend=backend) is None
+
+
+class _LinkClock:
+    """The link's clock for the paced fake: its sleep moves it, and the test moves it by hand."""
+
+    def __init__(self) -> None:
+        self.t = 100.0
+
+    def __call__(self) -> float:
+        return self.t
+
+    def sleep(self, seconds: float) -> None:
+        self.t += seconds
+
+
+def test_a_paced_link_hands_each_transfer_on_once_its_bytes_crossed_it() -> None:
+    clock = _LinkClock()
+    rate = 1e6                                                    # 1 MB/s: a 16x8 mono16 frame (296 B) 296 us
+    device = FakeGrabberDevice(PatternFeed("q", 16, 8), serial="XRG-8", realtime=False, link_bytes_per_s=rate,
+                               link_clock=clock, link_sleep=clock.sleep)
+    dev = usb.core.find(idVendor=proto.VENDOR_ID, backend=FakeGrabberBackend([device]))
+    usb.util.claim_interface(dev, 0)
+    dev.ctrl_transfer(0x40, proto.Request.START, 0, 0, b"")
+    frame = proto.HEADER_SIZE + 16 * 8 * 2
+    returned, sizes = [], []
+    start = clock.t
+    while sum(sizes) < frame:                                     # one frame in 100-byte transfers, back to back
+        sizes.append(len(dev.read(0x81, 100, timeout=100)))
+        returned.append(clock.t)
+    assert sizes == [100, 100, 96]
+    # Each transfer returns when its last byte has crossed the link, one after the other.
+    assert returned == pytest.approx([start + 100 / rate, start + 200 / rate, start + frame / rate])
+    # A host that asks late finds the link idle meanwhile: the next frame's bytes take their whole time
+    # from the moment it asks, however long the link was free.
+    clock.t += 1.0
+    asked = clock.t
+    assert len(dev.read(0x81, 4096, timeout=100)) == frame
+    assert clock.t == pytest.approx(asked + frame / rate)
+
+
+def test_an_unpaced_link_never_waits() -> None:
+    clock = _LinkClock()
+    device = FakeGrabberDevice(PatternFeed("q", 16, 8), serial="XRG-9", realtime=False,
+                               link_clock=clock, link_sleep=clock.sleep)
+    dev = usb.core.find(idVendor=proto.VENDOR_ID, backend=FakeGrabberBackend([device]))
+    usb.util.claim_interface(dev, 0)
+    dev.ctrl_transfer(0x40, proto.Request.START, 0, 0, b"")
+    for _ in range(3):
+        dev.read(0x81, 100, timeout=100)
+    assert clock.t == 100.0
+    with pytest.raises(ValueError):
+        FakeGrabberDevice(PatternFeed("q", 16, 8), link_bytes_per_s=0.0)
