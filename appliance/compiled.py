@@ -46,8 +46,10 @@ F = TypeVar("F", bound=Callable[..., Any])
 _WARM_UP_MODULES: list[str] = []
 
 
-#: Text by which a module is recognised as defining kernels (for the cache's source hash).
-_KERNEL_MARK = b"from appliance.compiled import"
+#: Text by which a module is recognised as defining kernels (for the cache's source hash): the decorator at
+#: the start of a line. Not the import of this module, which modules without kernels have too (the
+#: orchestrator's GC hold-off, the sim command's cache check): editing those must not recompile every kernel.
+_KERNEL_MARK = b"\n@kernel"
 #: Cache directories of older sources kept beside the current one (for a quick switch back).
 _KEEP_OLD_CACHES = 2
 
