@@ -1,15 +1,22 @@
 """The tracker's steady-state frame pair in one compiled call (:mod:`.steady_kernels`), and its Python side.
 
 :class:`SteadyPair` holds what does not change from frame to frame (the kernels' settings as arrays,
-the packed calibration, the plausibility checks' view scalars) and fills the call's per-frame input in
-one assignment. After the call, a plain frame (:func:`.steady_kernels._finish`: no ambiguity, no
-clutter, the head identified, robot-like, on its images) has its :class:`.Posture` built from the
-call's numbers (:meth:`SteadyPair.plain_posture`, with the few checks whose last bit depends on
-Python's ``math.hypot`` / ``math.degrees`` made here); any other frame gets the two views'
-:class:`.Blob` and :class:`.Features2D` (:meth:`SteadyPair.objects`) and the tracker's decisions on
-them. Either way the posture is the per-view path's (:func:`.roi_search.find_in_roi` per view, then
-:func:`.reconstruction.reconstruct`) to the last bit; where a view is not plainly found the call
-says so and the tracker takes that path, which decides as it always did.
+the packed calibration, the plausibility checks' view scalars) and writes the call's per-frame input
+in place. After the call, a plain frame (:func:`.steady_kernels._finish`: no ambiguity, no clutter,
+the head identified, robot-like, on its images) has its :class:`.Posture` built from the call's
+numbers (:meth:`SteadyPair.plain_posture`, with the few checks whose last bit depends on Python's
+``math.hypot`` / ``math.degrees`` made here; its tips and views are made when first read, see
+:meth:`.Posture.deferred`); any other frame gets the two views' :class:`.Blob` and :class:`.Features2D`
+(:meth:`SteadyPair.objects`) and the tracker's decisions on them. Either way the posture is the
+per-view path's (:func:`.roi_search.find_in_roi` per view, then :func:`.reconstruction.reconstruct`) to
+the last bit; where a view is not plainly found the call says so and the tracker takes that path,
+which decides as it always did.
+
+Per pair the Python around the call is a few dozen microseconds after a frame's copy has evicted the
+caches (issue 8; ``benchmarks/steady_python.py``): each distinct numpy call then costs several
+microseconds, so the plain path makes none but the call itself (the input through a memoryview, the
+output's numbers by one ``struct`` read, output arrays and the posture's views of them reused, see
+:meth:`SteadyPair._output`).
 """
 from __future__ import annotations
 
@@ -33,18 +40,14 @@ from appliance.recognition.settings import RecognitionSettings
 
 #: One view's last 2D outline as the tracker keeps it: centroid u, v, ends u0, v0, u1, v1, half width (px).
 Outline = tuple[float, float, float, float, float, float, float]
-_NO_OUTLINE = (0.0,) * 7
-_NO_DIRECTION = (0.0, 0.0, 0.0)
 
 
 class SteadyPair:
     """One compiled call per tracked pair for a calibration and settings (see the module docstring).
 
-    Per pair the Python around the call is what its microseconds allow (issue 8): the per-frame input is
-    packed into the preallocated input array in one ``struct`` call, the numbers Python needs of the
-    call's output are read in another, and a plain frame's :class:`.Posture` defers its tips and views
-    (two :class:`.ViewObservation` and their arrays) to their first reading (:meth:`.Posture.deferred`):
-    the control reads the pose, the rest is for the record, written after the command.
+    A plain frame's :class:`.Posture` defers its tips and views (two :class:`.ViewObservation` and their
+    arrays) to their first reading (:meth:`.Posture.deferred`): the control reads the pose, the rest is
+    for the record, written after the command.
     """
 
     def __init__(self, calibration: Calibration, settings: RecognitionSettings) -> None:
@@ -67,6 +70,8 @@ class SteadyPair:
         sources = _view_scalars(calibration)
         self._inp[sk.IN_SOURCES:sk.IN_SOURCES + 8] = [*sources["p"], *sources["q"]]
         self._calibration = calibration
+        #: The input's per-frame numbers, written in place (search).
+        self._frame_input = memoryview(self._inp)
         #: What the call takes between the coarse backgrounds and the previous pair's output, in its order
         #: (the same objects every pair).
         self._fixed = (self._table, view_kernels.GAUSSIAN_5, self._params, self._ring_outer, self._ring_inner,
@@ -124,14 +129,30 @@ class SteadyPair:
         known_p = float(sigma_p) if sigma_p is not None and math.isfinite(sigma_p) and sigma_p > 0 else 0.0
         known_q = float(sigma_q) if sigma_q is not None and math.isfinite(sigma_q) and sigma_q > 0 else 0.0
         lean = lean_from is not None
-        # Every per-frame number in the order of steady_kernels' layout, packed into the input in one call.
-        _FRAME_INPUT.pack_into(
-            self._inp, 0, *centre, *direction, half, *last_centre, *(previous or _NO_DIRECTION),
-            0.0 if previous is None else 1.0,
-            *(_NO_OUTLINE_INPUT if outline_p is None else (1.0, *outline_p)), known_p,
-            1.0 if lean and known_p > 0.0 else 0.0, bg_p.fy, bg_p.fx, *image_p.shape,
-            *(_NO_OUTLINE_INPUT if outline_q is None else (1.0, *outline_q)), known_q,
-            1.0 if lean and known_q > 0.0 else 0.0, bg_q.fy, bg_q.fx, *image_q.shape)
+        # Every per-frame number into its place of steady_kernels' layout, through a memoryview of the input
+        # (a float per store: after a frame's copy, far cheaper than numpy's or struct's conversion of a list).
+        m = self._frame_input
+        m[0], m[1], m[2] = centre
+        m[3], m[4], m[5] = direction
+        m[sk.IN_HALF] = half
+        m[7], m[8], m[9] = last_centre
+        if previous is None:
+            m[10] = m[11] = m[12] = m[13] = 0.0
+        else:
+            m[10], m[11], m[12] = previous
+            m[13] = 1.0
+        for v, outline, known, bg, image in ((_IN_P, outline_p, known_p, bg_p, image_p),
+                                             (_IN_Q, outline_q, known_q, bg_q, image_q)):
+            if outline is None:
+                m[v] = m[v + 1] = m[v + 2] = m[v + 3] = m[v + 4] = m[v + 5] = m[v + 6] = m[v + 7] = 0.0
+            else:
+                m[v] = 1.0
+                m[v + 1], m[v + 2], m[v + 3], m[v + 4], m[v + 5], m[v + 6], m[v + 7] = outline
+            m[v + 8] = known
+            m[v + 9] = 1.0 if lean and known > 0.0 else 0.0
+            m[v + 10] = bg.fy
+            m[v + 11] = bg.fx
+            m[v + 12], m[v + 13] = image.shape
         out, self._centroid_mm, self._direction, self._rest = self._output()
         status, w_p, m_p, w_q, m_q = sk.search_pair(image_p, image_q, bg_p.coarse, bg_q.coarse, *self._fixed,
                                                     self._no_previous if lean_from is None else lean_from, out)
@@ -244,9 +265,12 @@ def _reader(indices: tuple[int, ...]) -> struct.Struct:
 #: Output arrays made ahead (SteadyPair._output): the last pair's is held by the tracker, the one before
 #: it usually by nobody any more.
 _OUTPUTS = 3
-#: The per-frame input as one ``struct`` (native doubles, the layout of steady_kernels' input).
-_FRAME_INPUT = struct.Struct(f"={sk.IN_FRAME_SIZE}d")
-_NO_OUTLINE_INPUT = (0.0, *_NO_OUTLINE)
+# The per-frame input's layout (steady_kernels), as search writes it.
+assert (sk.IN_CENTRE, sk.IN_DIRECTION, sk.IN_HALF, sk.IN_LAST_CENTRE, sk.IN_PREVIOUS, sk.IN_VIEW_SIZE) == (
+    0, 3, 6, 7, 10, 14)
+assert (sk.V_HAS_OUTLINE, sk.V_OUTLINE, sk.V_KNOWN_SIGMA, sk.V_LEAN, sk.V_FY, sk.V_FX, sk.V_HEIGHT, sk.V_WIDTH) == (
+    0, 1, 8, 9, 10, 11, 12, 13)
+_IN_P, _IN_Q = sk.IN_VIEW, sk.IN_VIEW + sk.IN_VIEW_SIZE
 _UINT16 = np.dtype(np.uint16)
 _R, _E, _C = roi_kernels.REFINED, roi_kernels.EIGENVALUES, roi_kernels.CENTROID
 _P_CENTROID = sk.OUT_POSTURE + sk.P_CENTROID
