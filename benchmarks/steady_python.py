@@ -11,7 +11,9 @@ Each repetition runs the rendered pairs through a fresh tracker (the first pair 
 measured). Three passes, so no piece's clock reads sit inside another's figure:
 
 * ``pair``: :meth:`PostureTracker.process` alone, one clock read either side;
-* ``kernel``: the same with the compiled call also timed: ``python`` is ``pair`` minus ``kernel``;
+* ``kernel``: the same with the compiled call also timed: ``python`` is ``pair`` minus ``kernel``, for all
+  the steady pairs and split into plain ones (the posture built from the call's numbers) and the others
+  (blobs, features and the reconstruction's decisions in Python: :meth:`.SteadyPair.objects` was called);
 * pieces: each named method timed on its own pass (its clock reads subtracted, as measured back to back);
   a method the code does not have (the base it is compared with) is left out.
 
@@ -84,15 +86,26 @@ class _Timed:
         setattr(self.owner, self.name, self.real)
 
 
-def _run(chunk, calibration, settings, repeat, timed: list[_Timed], host, clock_ns) -> list[float]:
-    """``repeat`` passes of ``chunk`` through fresh trackers; per steady ROI pair, process()'s thread CPU (us)."""
+def _run(chunk, calibration, settings, repeat, timed: list[_Timed], host, clock_ns,
+         plain: list[bool] | None = None) -> list[float]:
+    """``repeat`` passes of ``chunk`` through fresh trackers; per steady ROI pair, process()'s thread CPU (us)
+    (and, into ``plain``, whether the pair was plain: :meth:`.SteadyPair.objects` not called)."""
     clock = time.thread_time_ns
     totals = []
+    objects = steady_state.SteadyPair.objects
+    called = [False]
+
+    def spy(self):  # type: ignore[no-untyped-def]
+        called[0] = True
+        return objects(self)
+
+    steady_state.SteadyPair.objects = spy
     for _ in range(repeat):
         tracker = PostureTracker(calibration, settings)
         for n, (p, q) in enumerate(chunk):
             np.copyto(host[0], p)
             np.copyto(host[1], q)
+            called[0] = False
             began = clock()
             tracker.process(host[0], host[1], frame=n, t=n / 30.0)
             spent = (clock() - began - clock_ns) / 1e3
@@ -104,6 +117,9 @@ def _run(chunk, calibration, settings, repeat, timed: list[_Timed], host, clock_
                     t.current[0] = 0.0
             if keep:
                 totals.append(spent)
+                if plain is not None:
+                    plain.append(not called[0])
+    steady_state.SteadyPair.objects = objects
     return totals
 
 
@@ -132,13 +148,17 @@ def main() -> None:
                                                        clock_ns)))
     kernel_samples: list[float] = []
     kernel = _Timed(steady_kernels, "search_pair", kernel_samples, clock_ns)
+    plain: list[bool] = []
     try:
-        totals = _run(chunk, scene.calibration, settings, args.repeat, [kernel], host, clock_ns)
+        totals = _run(chunk, scene.calibration, settings, args.repeat, [kernel], host, clock_ns, plain)
     finally:
         kernel.restore()
+    python = [t - k for t, k in zip(totals, kernel_samples)]
     rows.append(("  with the call timed: process()", totals))
     rows.append(("  the compiled call (search_pair)", kernel_samples))
-    rows.append(("  python = process() - the call", [t - k for t, k in zip(totals, kernel_samples)]))
+    rows.append(("  python = process() - the call", python))
+    rows.append(("    of plain pairs", [v for v, p in zip(python, plain) if p]))
+    rows.append(("    of the other pairs", [v for v, p in zip(python, plain) if not p]))
     for owner, name, label in PIECES:
         if not hasattr(owner, name):
             continue
