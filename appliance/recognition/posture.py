@@ -109,10 +109,12 @@ class Posture:
     def __getattr__(self, name: str) -> Any:
         # Called only for what the instance does not hold: the fields a deferred posture has not made yet.
         if name in DEFERRABLE:
-            rest = self.__dict__.pop("_rest", None)
+            held = self.__dict__
+            rest = held.pop("_rest", None)
             if rest is not None:
-                self.__dict__.update(rest())
-                return self.__dict__[name]
+                for key, value in rest().items():
+                    held.setdefault(key, value)  # a field assigned meanwhile keeps its new value
+                return held[name]
         raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
 
     def to_record(self) -> dict[str, Any]:

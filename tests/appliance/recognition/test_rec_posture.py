@@ -91,3 +91,12 @@ def test_posture_defaults_and_missing_attributes_are_unchanged() -> None:
     with pytest.raises(AttributeError):
         lost.no_such_field  # noqa: B018
     assert not hasattr(lost, "_rest") and math.isclose(lost.to_record()["t"], 0.1)
+
+
+def test_a_field_assigned_before_the_deferred_ones_are_made_keeps_its_value() -> None:
+    fields, views = _fields_and_views()
+    tips = np.array([[1.0, 2.0, 5.5], [1.0, 2.0, 0.5]])
+    posture = Posture.deferred(dict(fields), _Rest(tips, views))
+    other = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]])
+    posture.tips_mm = other
+    assert posture.views is views and posture.tips_mm is other
