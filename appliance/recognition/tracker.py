@@ -522,7 +522,8 @@ class PostureTracker:
     def _remember_plain(self, t: float, direction: np.ndarray) -> None:
         """:meth:`_remember` of the steady pair's plain posture at ``t`` (``direction`` its direction), from
         the call's numbers (:attr:`.SteadyPair.plain_track`: the same floats as the posture's fields), the
-        track updated in place."""
+        track updated in place. (Anything that changes a plain posture's pose after ``plain_posture`` must
+        have the track follow it: these numbers are the call's, not read back from the posture.)"""
         track = self._track
         assert track is not None
         centroid, direction_xyz, length, outline_p, outline_q = self._pair.plain_track
