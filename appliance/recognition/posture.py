@@ -7,6 +7,7 @@ turns it into the posture record written as JSON Lines. Numbers that are unknown
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -14,18 +15,37 @@ import numpy as np
 
 
 def _vec(value: np.ndarray | None, digits: int) -> list[float] | None:
+    """The numbers of ``value`` rounded to ``digits``, or None if it is None or any is not finite."""
     if value is None:
         return None
-    array = np.asarray(value, dtype=np.float64)
-    if not np.all(np.isfinite(array)):
-        return None
-    return [round(float(x), digits) for x in array.ravel()]
+    if type(value) is not np.ndarray or value.dtype != _FLOAT64:
+        value = np.asarray(value, dtype=np.float64)
+    # As Python floats (float64 -> float is exact), so the test and the rounding are per number without
+    # numpy's per-call overhead (a record has ~10 small arrays).
+    numbers = value.ravel().tolist()
+    for x in numbers:
+        if not math.isfinite(x):
+            return None
+    return [round(x, digits) for x in numbers]
+
+
+def _rows(value: np.ndarray, digits: int) -> list[list[float] | None]:
+    """``[_vec(row, digits) for row in value]`` for a 2D array (tips), from one conversion to floats."""
+    if type(value) is not np.ndarray or value.dtype != _FLOAT64:
+        value = np.asarray(value, dtype=np.float64)
+    if value.ndim != 2:
+        return [_vec(row, digits) for row in value]
+    return [None if not all(math.isfinite(x) for x in row) else [round(x, digits) for x in row]
+            for row in value.tolist()]
 
 
 def _num(value: float | None, digits: int) -> float | None:
     if value is None or not math.isfinite(value):
         return None
     return round(float(value), digits)
+
+
+_FLOAT64 = np.dtype(np.float64)
 
 
 @dataclass(frozen=True)
@@ -40,7 +60,7 @@ class ViewObservation:
     head_index: int | None = None  # which tip the asymmetry says is the conical head, if any
 
     def to_record(self) -> dict[str, Any]:
-        return {"centroid": _vec(self.centroid_px, 3), "tips": [_vec(tip, 3) for tip in self.tips_px],
+        return {"centroid": _vec(self.centroid_px, 3), "tips": _rows(self.tips_px, 3),
                 "axis": _vec(self.axis, 5), "pixel_count": int(self.pixel_count)}
 
 
@@ -73,6 +93,30 @@ class Posture:
         """A frame where the robot was not recognised; ``reason`` is one sentence for the operator."""
         return cls(frame=frame, t=t, ok=False, reason=reason, views=views or {"p": None, "q": None})
 
+    @classmethod
+    def deferred(cls, fields: dict[str, Any], rest: Callable[[], dict[str, Any]]) -> Posture:
+        """A posture holding ``fields`` (every field by name, but any of :data:`DEFERRABLE`) whose other
+        fields are made by ``rest()`` when one of them is first read (then kept). The tracker's steady
+        state builds its plain frames so (issue 8): the loop's control reads the pose at once, the tips
+        and the views are for the record, written after the command. Made without the dataclass's
+        ``__init__`` (it has no ``__post_init__``); every field reads as the ``__init__``-built
+        posture's would (the tests compare them)."""
+        posture = object.__new__(cls)
+        fields["_rest"] = rest
+        posture.__dict__ = fields
+        return posture
+
+    def __getattr__(self, name: str) -> Any:
+        # Called only for what the instance does not hold: the fields a deferred posture has not made yet.
+        if name in DEFERRABLE:
+            held = self.__dict__
+            rest = held.pop("_rest", None)
+            if rest is not None:
+                for key, value in rest().items():
+                    held.setdefault(key, value)  # a field assigned meanwhile keeps its new value
+                return held[name]
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+
     def to_record(self) -> dict[str, Any]:
         """The JSON-ready posture record (plain Python types; unknowns are None)."""
         record: dict[str, Any] = {
@@ -82,7 +126,7 @@ class Posture:
             "ambiguous": bool(self.ambiguous),
             "centroid_mm": _vec(self.centroid_mm, 4),
             "direction": _vec(self.direction, 6),
-            "tips_mm": None if self.tips_mm is None else [_vec(tip, 4) for tip in self.tips_mm],
+            "tips_mm": None if self.tips_mm is None else _rows(self.tips_mm, 4),
             "head_identified": bool(self.head_identified),
             "length_mm": _num(self.length_mm, 4),
             "reprojection_px": _num(self.reprojection_px, 3),
@@ -96,3 +140,10 @@ class Posture:
         if self.plane_angle_deg is not None:
             record["plane_angle_deg"] = _num(self.plane_angle_deg, 3)
         return record
+
+
+#: The fields :meth:`Posture.deferred` may leave to their first reading. None of them may be a class
+#: attribute (an instance's lookup would find it before ``__getattr__``): ``tips_mm``'s default None is
+#: its ``__init__``'s alone.
+DEFERRABLE = frozenset({"tips_mm", "views"})
+del Posture.tips_mm

@@ -59,6 +59,8 @@ from appliance.recognition.steady_state import SteadyPair
 log = logging.getLogger(__name__)
 
 VIEWS = ("p", "q")
+_NO_DIRECTION = (0.0, 0.0, 0.0)
+_NO_OUTLINES: dict[str, tuple[float, float, float, float, float, float, float]] = {}
 
 
 def _image_length_px(feat: Features2D) -> float:
@@ -66,9 +68,9 @@ def _image_length_px(feat: Features2D) -> float:
     return math.hypot(u0 - u1, v0 - v1)
 
 
-@dataclass
+@dataclass(slots=True)
 class _Track:
-    """What the tracker remembers of the last recognised frames."""
+    """What the tracker remembers of the last recognised frames (a plain steady frame updates it in place)."""
 
     t: float
     #: The centroid (mm) and velocity (mm/s, zero until two frames are known) as plain floats: the
@@ -83,6 +85,8 @@ class _Track:
     #: must hold the whole blob with room for the segmentation's ring and fill across it, also for a wide
     #: robot (#6 is ~25 px wide at 1024 px) and when the 3D axis is unknown (unresolved mirror ambiguity).
     view_outline_px: dict[str, tuple[float, float, float, float, float, float, float]] | None = None
+    #: ``direction`` as plain floats (None with it), for the next frame's prediction.
+    direction_xyz: tuple[float, float, float] | None = None
 
 
 #: While tracking, a view's noise sigma is measured on one ROI and reused for the next frames (same
@@ -99,6 +103,8 @@ class PostureTracker:
         self.F = fundamental_matrix(calibration.p, calibration.q)
         #: Both views packed for the compiled kernels (the calibration is immutable).
         self._packed = calibration.packed
+        #: Each view's image shape (rows, columns) as the calibration gives it (process's input check).
+        self._shapes = tuple((view.image_size[1], view.image_size[0]) for view in (calibration.p, calibration.q))
         #: The steady state's one compiled call per pair, and its output for the last frame if that one was
         #: found by it and remembered (what the lean pass starts from).
         self._pair = SteadyPair(calibration, self.settings)
@@ -129,30 +135,34 @@ class PostureTracker:
     # ---------------------------------------------------------------------------------------- API
     def process(self, image_p: np.ndarray, image_q: np.ndarray, *, frame: int = 0, t: float = 0.0) -> Posture:
         """Recognise the robot in one biplane pair (raw detector intensities, robot darker than surroundings)."""
-        images = {"p": self._checked(image_p, "p", frame), "q": self._checked(image_q, "q", frame)}
+        # The usual input (an array of the calibrated size) passes without _checked's messages being made ready.
+        if type(image_p) is not np.ndarray or image_p.shape != self._shapes[0]:
+            self._checked(image_p, "p", frame)
+        if type(image_q) is not np.ndarray or image_q.shape != self._shapes[1]:
+            self._checked(image_q, "q", frame)
         timings = {"segmentation": 0.0, "features": 0.0, "correspondence": 0.0, "triangulation": 0.0}
         front: tuple[int, np.ndarray] | None = None
         found = None
         paired = False
         if self._track is not None:
-            paired = self._search_pair(images, t, timings)
+            paired = self._search_pair(image_p, image_q, t, timings)
             if paired:
+                pair = self._pair
                 start = time.perf_counter_ns()
-                plain = self._pair.plain_posture(frame, t)
+                plain = pair.plain_posture(frame, t, timings)
                 if plain is not None:
                     # A plain frame: the posture the decisions below make, built from the call's numbers.
                     timings["triangulation"] = (time.perf_counter_ns() - start) / 1e3
-                    plain.timings_us = timings
-                    self._remember(plain)
-                    self._lean_from = self._pair.out
+                    self._remember_plain(t, plain.direction)
+                    self._lean_from = pair.out
                     return plain
-                (blob_p, blob_q), (feat_p, feat_q), status, out = self._pair.objects()
+                (blob_p, blob_q), (feat_p, feat_q), status, out = pair.objects()
                 found = {"p": blob_p, "q": blob_q}, {"p": feat_p, "q": feat_q}
                 front = (status, out) if status is not None else None
             else:
-                found = self._search_rois(images, t, timings)
+                found = self._search_rois({"p": image_p, "q": image_q}, t, timings)
         if found is None:
-            found, failure = self._search_full(images, timings)
+            found, failure = self._search_full({"p": image_p, "q": image_q}, timings)
             if found is None:
                 self._lose()
                 posture = Posture.lost(frame, t, failure)
@@ -221,23 +231,24 @@ class PostureTracker:
     def _features(self, blob: Blob) -> Features2D:
         return features(blob, self.settings)
 
-    def _search_pair(self, images: dict[str, np.ndarray], t: float, timings: dict[str, float]) -> bool:
+    def _search_pair(self, image_p: np.ndarray, image_q: np.ndarray, t: float, timings: dict[str, float]) -> bool:
         """:meth:`_search_rois` and the reconstruction's front in one compiled call (:mod:`.steady_state`): True
         if both views were found (the results are in ``self._pair``), False where that call does not apply or
         a view is not plainly found (then :meth:`_search_rois`)."""
         track = self._track
         assert track is not None
-        bg_p, bg_q = self._log_bg.get("p"), self._log_bg.get("q")
-        image_p, image_q = images["p"], images["q"]
-        if not self._pair.usable(image_p, image_q, bg_p, bg_q):
+        log_bg = self._log_bg
+        bg_p, bg_q = log_bg.get("p"), log_bg.get("q")
+        pair = self._pair
+        if not pair.usable(image_p, image_q, bg_p, bg_q):
             return False
         assert bg_p is not None and bg_q is not None
         # The prediction as _search_rois makes it (the projection and the ROIs are in the call).
         dt = t - track.t
         (x, y, z), (vx, vy, vz) = track.centroid, track.velocity
         half = 0.5 * (track.length_mm or 0.0) + 1.0
-        direction = track.direction.tolist() if track.direction is not None else (0.0, 0.0, 0.0)
-        outlines = track.view_outline_px or {}
+        previous = track.direction_xyz
+        outlines = track.view_outline_px or _NO_OUTLINES
         # Per view, the noise sigma to reuse (None: measure it) and how many frames it will have served.
         noise = self._roi_noise
         known_p, known_q = noise.get("p"), noise.get("q")
@@ -247,12 +258,12 @@ class PostureTracker:
                              and known_q[2] < NOISE_REMEASURE_FRAMES else (None, 1))
         start = time.perf_counter_ns()
         lean_from = self._lean_from if self.settings.lean_steady_state else None
-        found = self._pair.search(image_p, image_q, bg_p, bg_q, (x + vx * dt, y + vy * dt, z + vz * dt), direction,
-                                  half, outlines.get("p"), outlines.get("q"), sigma_p, sigma_q,
-                                  direction if track.direction is not None else None, lean_from, track.centroid)
+        found = pair.search(image_p, image_q, bg_p, bg_q, (x + vx * dt, y + vy * dt, z + vz * dt),
+                            previous or _NO_DIRECTION, half, outlines.get("p"), outlines.get("q"), sigma_p, sigma_q,
+                            previous, lean_from, track.centroid)
         if not found:
             return False
-        used_p, used_q = self._pair.sigmas()
+        used_p, used_q = pair.sigmas()
         noise["p"] = (bg_p, used_p, served_p)
         noise["q"] = (bg_q, used_q, served_q)
         # Both views' search and the reconstruction's front are one call: timed as segmentation.
@@ -270,7 +281,7 @@ class PostureTracker:
         (x, y, z), (vx, vy, vz) = track.centroid, track.velocity
         c0, c1, c2 = x + vx * dt, y + vy * dt, z + vz * dt
         half = 0.5 * (track.length_mm or 0.0) + 1.0
-        d0, d1, d2 = track.direction.tolist() if track.direction is not None else (0.0, 0.0, 0.0)
+        d0, d1, d2 = track.direction_xyz or _NO_DIRECTION
         # The robot's centre and ends, predicted, in both views ([view][centre, end, end][u, v]): one
         # compiled call, read as plain floats.
         projected = project_segment(self._packed, c0, c1, c2, d0, d1, d2, half).tolist()
@@ -505,7 +516,30 @@ class PostureTracker:
                 outline[name] = (cu, cv, u0, v0, u1, v1, 2.0 * math.sqrt(max(float(view.eigenvalues[1]), 0.0)))
         self._track = _Track(posture.t, (x, y, z), direction,
                              posture.length_mm if posture.length_mm is not None else (old.length_mm if old else None),
-                             velocity, view_outline_px=outline)
+                             velocity, view_outline_px=outline,
+                             direction_xyz=None if direction is None else tuple(direction.tolist()))
+
+    def _remember_plain(self, t: float, direction: np.ndarray) -> None:
+        """:meth:`_remember` of the steady pair's plain posture at ``t`` (``direction`` its direction), from
+        the call's numbers (:attr:`.SteadyPair.plain_track`: the same floats as the posture's fields), the
+        track updated in place. (Anything that changes a plain posture's pose after ``plain_posture`` must
+        have the track follow it: these numbers are the call's, not read back from the posture.)"""
+        track = self._track
+        assert track is not None
+        centroid, direction_xyz, length, outline_p, outline_q = self._pair.plain_track
+        if track.lost_frames == 0 and t > track.t:
+            dt = t - track.t
+            (x, y, z), (ox, oy, oz) = centroid, track.centroid
+            track.velocity = ((x - ox) / dt, (y - oy) / dt, (z - oz) / dt)
+        else:
+            track.velocity = (0.0, 0.0, 0.0)
+        track.t = t
+        track.centroid = centroid
+        track.direction = direction
+        track.direction_xyz = direction_xyz
+        track.length_mm = length
+        track.lost_frames = 0
+        track.view_outline_px = {"p": outline_p, "q": outline_q}
 
     def _lose(self) -> None:
         self._lean_from = None

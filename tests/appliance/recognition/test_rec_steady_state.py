@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import pickle
 
 import numpy as np
 import pytest
@@ -229,3 +230,32 @@ def test_a_compiled_axis_uncertainty_off_by_a_bit_sends_the_frame_to_python(view
     assert steady.plain_posture(1, 1 / 30.0) is None
     blobs, feats, status, _ = steady.objects()
     assert status is None and feats[1].axis_sigma_rad == python_value
+
+
+def test_output_arrays_are_reused_only_where_nothing_holds_them(views: dict[str, object],
+                                                                calibration: Calibration) -> None:
+    # A plain posture's arrays are views of its pair call's output, which the next calls reuse (SteadyPair._output)
+    # only where no posture, feature or track holds it: kept postures keep their numbers, dropped ones free them.
+    spec = load_robots()[1]
+    body = RobotBody(spec.length_mm, spec.diameter_mm, spec.tip_angle_deg, spec.attenuation_per_mm)
+    renderer = BiplaneRenderer(views, body, settings=ImagingSettings(), seed=5)
+    tracker = PostureTracker(calibration, RecognitionSettings(dark_level=ImagingSettings().dark_level))
+    pairs = [renderer.render(RobotPose(np.array([3.0 + 0.3 * n, -4.0, 5.0]), np.array([0.3, 0.5, 0.81])))
+             for n in range(16)]
+    kept = []
+    for n, pair in enumerate(pairs[:8]):
+        posture = tracker.process(pair.images["p"], pair.images["q"], frame=n, t=n / 30.0)
+        kept.append((posture, posture.to_record(), pickle.dumps(posture)))
+    plain = [p for p, _, _ in kept if p.frame > 0]
+    assert tracker.last_search == "roi"
+    assert len({id(p.centroid_mm) for p in plain}) == len(plain)
+    for posture, record, pickled in kept:
+        assert posture.to_record() == record == pickle.loads(pickled).to_record()
+    # Dropped postures free their arrays for the next calls.
+    seen = set()
+    del kept, plain, posture
+    for n, pair in enumerate(pairs[8:], start=8):
+        posture = tracker.process(pair.images["p"], pair.images["q"], frame=n, t=n / 30.0)
+        assert posture.ok and tracker.last_search == "roi"
+        seen.add(id(posture.centroid_mm))
+    assert len(seen) <= 3
