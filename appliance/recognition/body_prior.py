@@ -35,14 +35,17 @@ the measured length (the track's plausibility check compares it frame to frame) 
 """
 from __future__ import annotations
 
+import copy
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
 from appliance.geometry import Calibration
-from appliance.recognition.posture import Posture
+from appliance.geometry_kernels import _K, _SRC, VIEW_SIZE
+from appliance.recognition.posture import Posture, ViewObservation
+from appliance.recognition.reconstruction_kernels import _ray_line_b
 from appliance.recognition.segmentation import Blob, LogBackground, Roi, attenuation
 from appliance.recognition.settings import RecognitionSettings
 
@@ -178,22 +181,19 @@ class AxialEstimate:
     sigma_mm: float
 
 
-def _view_rays(view, obs, c: np.ndarray, u: np.ndarray) -> tuple[list[tuple[float, float]], float]:
-    """For the view's centroid and both tips, ``(b, sine)``: the parameter of the point of ``c + b u``
-    nearest the pixel's ray and the ray-axis sine; and the view's mm per px at ``c``."""
-    pixels = np.vstack([obs.centroid_px[None, :], obs.tips_px])
-    _, rays = view.rays(pixels)
-    source = view.source_mm
-    (w0, w1, w2) = (source - c).tolist()
-    (u0, u1, u2) = u.tolist()
-    wu = w0 * u0 + w1 * u1 + w2 * u2
+def _view_rays(G: np.ndarray, view: int, obs: ViewObservation, c: np.ndarray, u: np.ndarray
+               ) -> tuple[list[tuple[float, float]], float]:
+    """For the view's (0: p, 1: q) centroid and both tips, ``(b, sine)``: the parameter of the point of
+    ``c + b u`` nearest the pixel's ray and the ray-axis sine (the reconstruction's compiled
+    ``_ray_line_b``: a steady-state frame pays ~1 us a ray, not numpy's ~10); and the view's mm per px at ``c``."""
+    o = view * VIEW_SIZE
+    (cu, cv), ((u0, v0), (u1, v1)) = obs.centroid_px.tolist(), obs.tips_px.tolist()
     out = []
-    for r0, r1, r2 in rays.tolist():
-        k = r0 * u0 + r1 * u1 + r2 * u2
-        sin2 = max(1.0 - k * k, 1e-12)
-        out.append(((wu - k * (w0 * r0 + w1 * r1 + w2 * r2)) / sin2, math.sqrt(sin2)))
-    z = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
-    return out, z / float(view.K[0, 0])
+    for pu, pv in ((cu, cv), (u0, v0), (u1, v1)):
+        b, sin2 = _ray_line_b(G, o, pu, pv, c, u)
+        out.append((b, math.sqrt(sin2)))
+    w0, w1, w2 = (G[o + _SRC:o + _SRC + 3] - c).tolist()
+    return out, math.sqrt(w0 * w0 + w1 * w1 + w2 * w2) / float(G[o + _K])
 
 
 def _end_sigma_mm(head: bool, body: BodyModel, mm_per_px: float, sine: float, inflation: float) -> float:
@@ -223,6 +223,7 @@ def axial_evidence(calibration: Calibration, posture: Posture, body: BodyModel, 
     """
     assert posture.centroid_mm is not None and posture.direction is not None
     c, u = posture.centroid_mm, posture.direction
+    G = calibration.packed
     core: list[AxialEstimate] = []
     apexes: list[AxialEstimate] = []
     to_head = body.length_mm - body.centroid_from_tail_mm
@@ -235,7 +236,7 @@ def axial_evidence(calibration: Calibration, posture: Posture, body: BodyModel, 
         obs = posture.views.get(name)
         if obs is None:
             continue
-        found, mm_per_px = _view_rays(calibration.views[name], obs, c, u)
+        found, mm_per_px = _view_rays(G, 0 if name == "p" else 1, obs, c, u)
         (_, sine_c), tips = found[0], found[1:]
         sin2_sum += sine_c * sine_c
         mm_sum += mm_per_px
@@ -337,7 +338,12 @@ def place_body(calibration: Calibration, posture: Posture, body: BodyModel, sett
             # The ends as measured are not the body's: one ran on into another structure or was cut by it.
             # The placement above does not depend on them alone, but the frame is not a clean one.
             ambiguous = True
+            why = ("an end runs on into another structure or was lost to it" if posture.head_identified else
+                   "an end runs on into another structure or was lost to it, or the cone's apex was measured as a "
+                   "flat end (the head is not identified)")
             reasons.append(f"the measured length {measured:.1f} mm is not the robot's {length:g} mm (noise "
-                           f"{noise:.2f} mm): an end runs on into another structure or was lost to it")
-    return replace(posture, centroid_mm=centroid, tips_mm=tips, ambiguous=ambiguous,
-                   reason="; ".join(reasons) if reasons else None)
+                           f"{noise:.2f} mm): {why}")
+    placed = copy.copy(posture)  # (dataclasses.replace re-runs __init__: a few us a steady-state frame)
+    placed.centroid_mm, placed.tips_mm, placed.ambiguous = centroid, tips, ambiguous
+    placed.reason = "; ".join(reasons) if reasons else None
+    return placed
