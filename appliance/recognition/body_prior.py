@@ -19,10 +19,11 @@ That number is measured several ways, each with its own uncertainty (:func:`axia
 
 The estimates are combined by inverse variance (:func:`place_body`): independent measurements of one
 number, each Gaussian to first order, so that is their maximum-likelihood mean and the sigmas
-decide, not a fixed rule per case. Estimates that disagree with the combination by more than their
-noise (chi-square) mean the frame is not one body seen cleanly; so does a measured length (today's tips)
-off the known one by more than its noise: a blob that ran on into a vessel or lost part of the body to
-it. Such frames are flagged ambiguous with the reason, never hidden.
+decide, not a fixed rule per case. The apexes join only where they agree with the centroid and tails
+(their errors have heavy tails). A measured length (the ends as measured) off the known one by more than
+its noise means an end ran on into a vessel or lost part of the body to it: the frame is flagged
+ambiguous with that reason, never hidden. (The estimates' chi-square was tried as a flag too: on the dev
+seeds it flagged almost no frame whose centroid was off, and is not used.)
 
 Where the head is not identified the tips' order is unknown, and so is the side of the centroid the
 body's offset lies on: the measured ends then choose between the two placements only where one fits
@@ -293,7 +294,8 @@ def place_body(calibration: Calibration, posture: Posture, body: BodyModel, sett
     """The posture with its centroid and tips placed by the known body (see the module docstring).
 
     ``clutter``: per view, :attr:`.Blob.clutter` (both paths have it; a view left out counts as clean);
-    ``axis_sigma_rad``: the 3D axis' standard deviation (:attr:`.Reconstruction.axis_sigma_rad`); ``ends``: per view over another structure (clutter above ``settings.max_clutter``), its
+    ``axis_sigma_rad``: the 3D axis' standard deviation (:attr:`.Reconstruction.axis_sigma_rad`);
+    ``ends``: per view over another structure (clutter above ``settings.max_clutter``), its
     :func:`end_clutter`. A lost posture, one without an axis (unresolved mirror ambiguity) or without
     tips is returned as it is, and so is every posture of the paper's estimator (kept verbatim).
     """
