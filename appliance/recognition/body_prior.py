@@ -166,7 +166,16 @@ END_CLUTTER_GAIN = 4.0
 #: An apex estimate joins only if it lies within this many sigmas of the centroid's and tails' mean: the
 #: apex's errors have heavy tails (a faint cone lost to noise or run on into a vessel: 1-3 mm).
 APEX_GATE_SIGMAS = 3.0
-#: The measured length (the ends as measured) is implausible beyond this many sigmas of its noise.
+#: Where the body is placed, the centroid and the tails are inconsistent beyond this many sigmas (per degree
+#: of freedom, chi-square) of a clean frame's noise (the sigmas without the clutter terms; with them, a
+#: frame just under ``max_clutter`` whose moment centroid slid 0.8 mm passed as clean: dev seed 14, robot
+#: 6). On the dev seeds' frames not flagged otherwise it flagged 3 of 611, 2 of them > 0.15 mm off. The
+#: measured length is no such sign there: an apex off alone (flagged by it in 1 of 30 frames of robots 1
+#: and 5) is not used, and the frame is placed well.
+CORE_SIGMAS = 4.0
+#: Where the measured tips are kept (head not identified, order undecided), their length is implausible
+#: beyond this many sigmas of a clean frame's noise: an end is off (the apex measured as a flat end falls
+#: short by ~0.7 of the cone).
 LENGTH_SIGMAS = 4.0
 #: The ends' order is taken from the body's offset where one order fits the ends better by this much
 #: (chi-square), with the head not identified.
@@ -180,6 +189,8 @@ class AxialEstimate:
     what: str          # "centroid", or "<view> head" / "<view> tail"
     b_mm: float        # the body centroid's position it implies
     sigma_mm: float
+    #: What the sigma would be on a clean frame (no clutter terms): the yardstick for the consistency checks.
+    clean_sigma_mm: float
 
 
 def _view_rays(G: np.ndarray, view: int, obs: ViewObservation, c: np.ndarray, u: np.ndarray
@@ -214,7 +225,7 @@ def axial_evidence(calibration: Calibration, posture: Posture, body: BodyModel, 
     ``core`` holds the moment centroid and each view's tail (a flat end's crossing is as sharp as the
     centroid), ``apexes`` each view's head (gated by :func:`place_body`); ``head_end`` is which of the
     posture's tips (0 or 1) is taken for the head. The end sigmas (3D, ``"head"``, ``"tail"``) are those of
-    the ends as measured, for the length's noise. ``clutter``: per view, :attr:`.Blob.clutter`; ``ends``:
+    the ends as a clean frame would measure them (no clutter term), for the length's noise. ``clutter``: per view, :attr:`.Blob.clutter`; ``ends``:
     per view over another structure, :func:`end_clutter` of its tips in the posture's order;
     ``axis_sigma_rad``: the 3D axis' standard deviation, which blurs where the ends' rays meet it.
 
@@ -251,19 +262,24 @@ def axial_evidence(calibration: Calibration, posture: Posture, body: BodyModel, 
             head = end == head_end
             local = near[end]
             inflation = view_gain + (END_CLUTTER_GAIN * local / settings.max_clutter if math.isfinite(local) else 1e6)
-            # An axis off by delta moves where an end's ray meets it by about |b| delta / sine: on a frame
-            # seen nearly end-on (axis uncertain by degrees) the ends say little of the body's place.
-            sigma = math.hypot(_end_sigma_mm(head, body, mm_per_px, sine, inflation),
-                               abs(b) * axis_sigma_rad / max(sine, 1e-3))
-            weights["head" if head else "tail"] += 1.0 / (sigma * sigma)
+            # An axis turned by delta about the centroid moves where an end's ray meets it by up to
+            # |b| delta cos / sin of the ray-axis angle (a ray across the axis meets it in the same place to
+            # first order): a view that sees the axis foreshortened says little of the body's place when
+            # the axis is uncertain by degrees.
+            tilt = abs(b) * axis_sigma_rad * math.sqrt(max(1.0 - sine * sine, 0.0)) / max(sine, 1e-3)
+            sigma = math.hypot(_end_sigma_mm(head, body, mm_per_px, sine, inflation), tilt)
+            # The checks' yardstick is a clean end's noise (no clutter term): the question is whether the
+            # ends are where clean measurements of this body would put them.
+            clean = math.hypot(_end_sigma_mm(head, body, mm_per_px, sine, 1.0), tilt)
+            weights["head" if head else "tail"] += 1.0 / (clean * clean)
             if head:
-                apexes.append(AxialEstimate(f"{name} head", b - sign * to_head, sigma))
+                apexes.append(AxialEstimate(f"{name} head", b - sign * to_head, sigma, clean))
             elif flat_tail:
-                core.append(AxialEstimate(f"{name} tail", b + sign * body.centroid_from_tail_mm, sigma))
+                core.append(AxialEstimate(f"{name} tail", b + sign * body.centroid_from_tail_mm, sigma, clean))
     if views:
-        sigma_c = (CENTROID_SIGMA_PX * (mm_sum / views) / math.sqrt(max(sin2_sum, 1e-6))
-                   * (1.0 + CENTROID_CLUTTER_GAIN * (worst / settings.max_clutter) ** 2))
-        core.insert(0, AxialEstimate("centroid", 0.0, sigma_c))
+        clean_c = CENTROID_SIGMA_PX * (mm_sum / views) / math.sqrt(max(sin2_sum, 1e-6))
+        sigma_c = clean_c * (1.0 + CENTROID_CLUTTER_GAIN * (worst / settings.max_clutter) ** 2)
+        core.insert(0, AxialEstimate("centroid", 0.0, sigma_c, clean_c))
     sigmas = {k: (1.0 / math.sqrt(w) if w > 0 else math.inf) for k, w in weights.items()}
     return core, apexes, sigmas
 
@@ -288,6 +304,20 @@ def _combine(core: list[AxialEstimate], apexes: list[AxialEstimate]) -> tuple[fl
     return b, chi2, len(used)
 
 
+def _disagreement(core: list[AxialEstimate]) -> tuple[float, int, str, float]:
+    """How far the centroid and the tails disagree, measured by a clean frame's noise: the chi-square of their
+    inverse-variance mean with the clean sigmas, its degrees of freedom, and the estimate most at odds with it
+    with how far (mm) it puts the body from where the others do."""
+    w = [1.0 / (e.clean_sigma_mm * e.clean_sigma_mm) for e in core]
+    total = sum(w)
+    b = sum(wi * e.b_mm for wi, e in zip(w, core)) / total
+    chi2 = sum(wi * (e.b_mm - b) ** 2 for wi, e in zip(w, core))
+    k = max(range(len(core)), key=lambda i: w[i] * (core[i].b_mm - b) ** 2)
+    others = total - w[k]
+    rest = (b * total - w[k] * core[k].b_mm) / others if others > 0 else b
+    return chi2, len(core) - 1, core[k].what, core[k].b_mm - rest
+
+
 def place_body(calibration: Calibration, posture: Posture, body: BodyModel, settings: RecognitionSettings,
                clutter: dict[str, float] | None = None, axis_sigma_rad: float = 0.0,
                ends: dict[str, tuple[float, float]] | None = None) -> Posture:
@@ -308,6 +338,7 @@ def place_body(calibration: Calibration, posture: Posture, body: BodyModel, sett
     cft, length = body.centroid_from_tail_mm, body.length_mm
     reasons = [posture.reason] if posture.reason else []
     ambiguous = posture.ambiguous
+    decisive = False
     if posture.head_identified:
         core, apexes, sigmas = axial_evidence(calibration, posture, body, settings, clutter, ends, 0, axis_sigma_rad)
         b, _, _ = _combine(core, apexes)
@@ -333,18 +364,26 @@ def place_body(calibration: Calibration, posture: Posture, body: BodyModel, sett
             tips = np.array([head, tail]) if head_end == 0 else np.array([tail, head])
         else:
             centroid, tips = c, posture.tips_mm
+    placed_by_body = posture.head_identified or decisive
     measured = posture.length_mm
-    if measured is not None and math.isfinite(measured):
+    if placed_by_body:
+        # The body was placed by the centroid and the tails: where they disagree beyond a clean frame's noise,
+        # one of them is off and the place is in doubt. (An apex off alone is not used, so it casts no doubt.)
+        chi2, dof, what, off = _disagreement(core)
+        if dof > 0 and chi2 > CORE_SIGMAS ** 2 * dof:
+            ambiguous = True
+            source = "the moment centroid" if what == "centroid" else f"view {what}"
+            reasons.append(f"{source} puts the body {abs(off):.2f} mm along its axis from where the rest of the "
+                           f"evidence does, more than their noise: the place along the axis is in doubt (over "
+                           f"another structure, or an end lost or run on)")
+    elif measured is not None and math.isfinite(measured):
+        # The measured tips are kept: a length off the body's beyond their noise means they are off.
         noise = math.hypot(sigmas["head"], sigmas["tail"])
         if abs(measured - length) > LENGTH_SIGMAS * noise:
-            # The ends as measured are not the body's: one ran on into another structure or was cut by it.
-            # The placement above does not depend on them alone, but the frame is not a clean one.
             ambiguous = True
-            why = ("an end runs on into another structure or was lost to it" if posture.head_identified else
-                   "an end runs on into another structure or was lost to it, or the cone's apex was measured as a "
-                   "flat end (the head is not identified)")
             reasons.append(f"the measured length {measured:.1f} mm is not the robot's {length:g} mm (noise "
-                           f"{noise:.2f} mm): {why}")
+                           f"{noise:.2f} mm): an end runs on into another structure or was lost to it, or the "
+                           f"cone's apex was measured as a flat end (the head is not identified)")
     placed = copy.copy(posture)  # (dataclasses.replace re-runs __init__: a few us a steady-state frame)
     placed.centroid_mm, placed.tips_mm, placed.ambiguous = centroid, tips, ambiguous
     placed.reason = "; ".join(reasons) if reasons else None

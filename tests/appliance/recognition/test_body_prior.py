@@ -2,8 +2,9 @@
 
 Synthetic postures (the true body projected into the small session views, then one feature moved as clutter
 moves it) check the combination: a clean frame keeps its place, a cluttered end or a slid moment centroid
-is outvoted by the clean evidence, a head run on into a vessel shows in the length and is not believed, an
-unidentified head is ordered only where the body's offset says so decisively. A rendered robot-6 frame over
+is outvoted by the clean evidence, a head run on into a vessel is not believed, a centroid and tails that disagree
+(or kept tips of the wrong length) flag the frame, an unidentified head is ordered only where the body's offset says
+so decisively. A rendered robot-6 frame over
 the vessel checks the tracker's use of it."""
 from __future__ import annotations
 
@@ -82,15 +83,41 @@ def test_an_end_over_a_vessel_is_outvoted_by_the_clean_evidence(calibration: Cal
     assert np.linalg.norm(blind.centroid_mm - c) > np.linalg.norm(placed.centroid_mm - c)
 
 
-def test_a_head_run_on_into_a_vessel_shows_in_the_length(calibration: Calibration, robot6: BodyModel) -> None:
+def test_a_head_run_on_into_a_vessel_is_not_believed(calibration: Calibration, robot6: BodyModel) -> None:
     c, u, head, tail = _truth(robot6, (2.0, -3.0, 4.0), (0.6, -0.3, 0.74))
     posture = _posture(calibration, c, u, head, tail, moved={("p", 0): 15.0, ("q", 0): 15.0})
     posture = dataclasses.replace(posture, length_mm=robot6.length_mm + 3.0)
     placed = place_body(calibration, posture, robot6, SETTINGS)
-    assert placed.ambiguous and "measured length 33.0 mm is not the robot's 30 mm" in placed.reason
-    # The apexes, 3 mm off, are not believed: the body sits where the centroid and the tails put it.
+    # The apexes, 3 mm off, are not used: the body sits where the centroid and the tails put it, which agree,
+    # so nothing casts doubt on the place (the measured length stays the measurement).
     assert np.linalg.norm(placed.centroid_mm - c) < 0.01
     assert np.linalg.norm(placed.tips_mm[0] - head) < 0.01
+    assert not placed.ambiguous and placed.length_mm == robot6.length_mm + 3.0
+
+
+def test_a_centroid_and_tails_that_disagree_flag_the_frame(calibration: Calibration, robot6: BodyModel) -> None:
+    c, u, head, tail = _truth(robot6, (2.0, -3.0, 4.0), (0.6, -0.3, 0.74))
+    # Neither view is over another structure by its clutter, yet the moment centroid slid 0.6 mm: the tails
+    # say so, and the frame is flagged rather than reported clean.
+    posture = _posture(calibration, c, u, head, tail, centroid_shift_mm=0.6)
+    placed = place_body(calibration, posture, robot6, SETTINGS, {"p": 0.1, "q": 0.12})
+    assert placed.ambiguous and "the moment centroid puts the body 0.60 mm along its axis from" in placed.reason
+    assert np.linalg.norm(placed.centroid_mm - c) < np.linalg.norm(posture.centroid_mm - c)
+    calm = place_body(calibration, _posture(calibration, c, u, head, tail, centroid_shift_mm=0.03), robot6, SETTINGS)
+    assert not calm.ambiguous
+
+
+def test_kept_tips_of_the_wrong_length_flag_the_frame(calibration: Calibration) -> None:
+    rod = BodyModel(length_mm=12.0, centroid_from_tail_mm=6.0, cone_length_mm=0.0, diameter_mm=2.0)
+    c, u, head, tail = _truth(rod, (1.0, 1.0, 1.0), (0.5, 0.5, 0.7))
+    # Both ends measured 4 px short in both views: either order fits alike (badly), so it stays undecided.
+    short = {(name, end): -4.0 for name in ("p", "q") for end in (0, 1)}
+    posture = _posture(calibration, c, u, head, tail, moved=short, head_identified=False)
+    posture = dataclasses.replace(posture, length_mm=10.2)
+    placed = place_body(calibration, posture, rod, SETTINGS)
+    # Head not identified and the order undecided: the measured tips are kept, and their length says they are off.
+    assert placed.ambiguous and "the measured length 10.2 mm is not the robot's 12 mm" in placed.reason
+    np.testing.assert_array_equal(placed.tips_mm, posture.tips_mm)
 
 
 @pytest.mark.parametrize("flip", [False, True])
