@@ -20,14 +20,17 @@ That number is measured several ways, each with its own uncertainty (:func:`axia
 The estimates are combined by inverse variance (:func:`place_body`): independent measurements of one
 number, each Gaussian to first order, so that is their maximum-likelihood mean and the sigmas
 decide, not a fixed rule per case. The apexes join only where they agree with the centroid and tails
-(their errors have heavy tails). A measured length (the ends as measured) off the known one by more than
-its noise means an end ran on into a vessel or lost part of the body to it: the frame is flagged
-ambiguous with that reason, never hidden. (The estimates' chi-square was tried as a flag too: on the dev
-seeds it flagged almost no frame whose centroid was off, and is not used.)
+(their errors have heavy tails). Where the centroid and the tails disagree by more than a clean frame's
+noise, one of them ran on into a vessel, lost part of the body to it or slid with the background under
+it, and the place along the axis is in doubt: the frame is flagged ambiguous with the estimate at odds,
+never hidden. (The measured length says the same only where the apex is not the end that is off; where
+the measured tips are kept, a length off the body's flags the frame.)
 
 Where the head is not identified the tips' order is unknown, and so is the side of the centroid the
 body's offset lies on: the measured ends then choose between the two placements only where one fits
-decisively better; otherwise the frame keeps its measured centroid and tips.
+decisively better (the head is still not claimed); otherwise the frame keeps its measured centroid and
+tips. (Both ends measured as flat, the apex's half-height crossing falls short of it by about the
+body's offset asymmetry, so such frames mostly stay undecided.)
 
 Applied to the :class:`.Posture` (both the tracker's general path and the steady state's plain frames
 build one, to the last bit the same), so both paths stay identical. The posture's ``length_mm`` stays
