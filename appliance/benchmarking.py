@@ -275,12 +275,14 @@ def profile_rows(stats: pstats.Stats, pairs: int, top: int = 15) -> list[dict[st
 def run_bench(source: FrameSource, frames: int, amplifier_factory: Callable[[Any], Any] | None = None,
               amplifier_url: str | None = None, moment_am2: float = 1e-3,
               progress: Callable[[str], None] | None = None,
-              settings: RecognitionSettings | None = None, profile_pairs: int = 0) -> BenchResult:
+              settings: RecognitionSettings | None = None, profile_pairs: int = 0, robot: Any | None = None
+              ) -> BenchResult:
     """Measure ``frames`` pairs of ``source`` (see the module docstring); ``amplifier_url`` is a served
     amplifier (pty path or TCP address) for the command stage, skipped when None. ``amplifier_factory``
     builds the driver from an open port (default :class:`drivers.amplifier.Amplifier`, with its
     heartbeat: rendering a frame and the cold detection come between two commands). ``moment_am2`` is
-    the robot's magnetic moment, for the force allocation. ``profile_pairs`` more pairs after the
+    the robot's magnetic moment, for the force allocation; ``robot`` its catalogue entry, whose body the
+    trackers place the centroid and tips by (None: model-free). ``profile_pairs`` more pairs after the
     measured ones go through the steady-state step (recognition, control, allocation, command) under
     cProfile, for :attr:`BenchResult.profile` (the measured figures are taken without the profiler)."""
     from drivers.amplifier import Amplifier
@@ -288,8 +290,8 @@ def run_bench(source: FrameSource, frames: int, amplifier_factory: Callable[[Any
 
     settings = settings or RecognitionSettings(dark_level=source.dark_level)
     calibration = source.calibration
-    steady = PostureTracker(calibration, settings)
-    cold = PostureTracker(calibration, settings)
+    steady = PostureTracker(calibration, settings, body=robot)
+    cold = PostureTracker(calibration, settings, body=robot)
     chain = _control_chain()
     # Every compiled kernel (recognition's, control's) before the first frame: no frame pays for it.
     # Then the first pair through a scratch tracker, detected and tracked, for any signature the
@@ -297,7 +299,7 @@ def run_bench(source: FrameSource, frames: int, amplifier_factory: Callable[[Any
     warm_up_s = warm_up_all()
     pairs = iter(source.pairs())
     first = next(pairs)
-    scratch = PostureTracker(calibration, settings)
+    scratch = PostureTracker(calibration, settings, body=robot)
     for k in range(2):
         scratch.process(*first, frame=k, t=k / source.fps)
     samples = {mode: _Samples() for mode in MODES}

@@ -179,7 +179,7 @@ class Simulation:
             self.orchestrator = Orchestrator(
                 frames=self.frames, amplifier=self.devices.amplifier,
                 tracker=PostureTracker(self.devices.calibration,
-                                       recognition_settings(config, self.devices.calibration)),
+                                       recognition_settings(config, self.devices.calibration), body=self.robot),
                 follower=self.follower,
                 safety=SafetySupervisor(config.safety), allocator=CurrentAllocator(ActuationModel(self.coils)),
                 moment_am2=self.robot.magnetic_moment_am2, settings=LoopSettings.from_config(config),

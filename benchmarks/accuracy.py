@@ -24,7 +24,9 @@ tracker first sees the robot one step back (0.3 mm along a random direction, one
 the script prints how many measured frames did go through that (ROI) path.
 
 Usage: ``python benchmarks/accuracy.py [--poses N] [--seed S] [--robots 1,2,...] [--empty N] [--tracked]
-[--json FILE]``.
+[--no-body-prior] [--json FILE]``.
+The trackers are given the robot (as the appliance's are), so its known body places the centroid and
+tips (:mod:`appliance.recognition.body_prior`); ``--no-body-prior`` measures the model-free pipeline.
 It prints a table and asserts nothing. The default seed is not one the tests use.
 """
 from __future__ import annotations
@@ -134,8 +136,8 @@ def summarise(scores: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def run_robot(robot_id: int, spec: Any, poses: list[RobotPose], seed: int, calibration: Calibration,
-              views: dict[str, Any], phantom: VesselPhantom, imaging: ImagingSettings, tracked: bool = False
-              ) -> tuple[dict[str, list[dict[str, Any]]], float]:
+              views: dict[str, Any], phantom: VesselPhantom, imaging: ImagingSettings, tracked: bool = False,
+              body_prior: bool = True) -> tuple[dict[str, list[dict[str, Any]]], float]:
     """Per estimator, the scores of every pose, and the seconds spent recognising the measured frames.
 
     With ``tracked``, each pose is preceded by a frame of the robot one step back (``TRACK_STEP_MM``
@@ -146,7 +148,10 @@ def run_robot(robot_id: int, spec: Any, poses: list[RobotPose], seed: int, calib
     renderer = BiplaneRenderer(views, body, vessel=phantom, settings=imaging, seed=seed + robot_id)
     step_rng = np.random.default_rng([seed, robot_id, 1])
     # The detector's offset is known on a bench from its dark-frame calibration; here from the simulator.
-    trackers = {name: PostureTracker(calibration, RecognitionSettings(estimator=name, dark_level=imaging.dark_level))
+    # The trackers know the robot, as the appliance's always do (its body places the centroid and tips
+    # unless ``body_prior`` is off: the model-free pipeline).
+    trackers = {name: PostureTracker(calibration, RecognitionSettings(estimator=name, dark_level=imaging.dark_level,
+                                                                      body_prior=body_prior), body=spec)
                 for name in ESTIMATORS}
     scores: dict[str, list[dict[str, Any]]] = {name: [] for name in ESTIMATORS}
     elapsed = 0.0
@@ -228,6 +233,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="scenes without the robot (vessels only) that must give no posture (default 20)")
     parser.add_argument("--tracked", action="store_true",
                         help="measure the steady-state (ROI) path: each pose follows a frame one step back")
+    parser.add_argument("--no-body-prior", action="store_true",
+                        help="measure the model-free pipeline: the robot's known body does not place the centroid "
+                             "and tips (RecognitionSettings.body_prior off)")
     parser.add_argument("--json", type=Path, help="also write the per-robot summaries (and per-frame scores) here")
     args = parser.parse_args(argv)
     warm_up_all()  # the kernels compiled before the first timed frame (its ms per pair line)
@@ -245,7 +253,7 @@ def main(argv: list[str] | None = None) -> int:
         rng = np.random.default_rng([args.seed, robot_id])
         poses = random_poses(rng, args.poses)
         scores, elapsed = run_robot(robot_id, robots[robot_id], poses, args.seed, calibration, views, phantom, imaging,
-                                    tracked=args.tracked)
+                                    tracked=args.tracked, body_prior=not args.no_body_prior)
         total_time += elapsed
         total_frames += len(poses) * len(ESTIMATORS)
         results[robot_id] = {name: summarise(s) for name, s in scores.items()}
@@ -256,7 +264,8 @@ def main(argv: list[str] | None = None) -> int:
           f"+-{POSITION_RANGE_MM:g} mm, default views (90 deg, 500 mm SOD), "
           f"{'no vessel' if args.no_vessel else 'vessel phantom'}, noise on; "
           + (f"each frame tracked from one {TRACK_STEP_MM:g} mm step back ({TRACK_FPS:g} fps)" if args.tracked
-             else "every frame from scratch (no history)"))
+             else "every frame from scratch (no history)")
+          + ("; model-free (no body prior)" if args.no_body_prior else "; the robot's body places centroid and tips"))
     print_table(results)
     if args.tracked:
         for name in ESTIMATORS:

@@ -207,10 +207,10 @@ def measure(frames: int = 300, size: int = 1024, robot_id: int = 1, speed_mm_s: 
     if amplifier:
         with served_amplifier(len(load_coils().coils), in_process=amplifier_in_process) as path:
             result = run_bench(scene, frames, amplifier_url=path, moment_am2=moment, progress=progress,
-                               profile_pairs=profile_pairs, settings=settings)
+                               profile_pairs=profile_pairs, settings=settings, robot=scene.robot)
     else:
         result = run_bench(scene, frames, moment_am2=moment, progress=progress, profile_pairs=profile_pairs,
-                           settings=settings)
+                           settings=settings, robot=scene.robot)
     result.config.update({"robot": robot_id, "speed_mm_s": speed_mm_s, "seed": seed,
                           "amplifier_served_by": None if not amplifier else
                           "a thread of this process" if amplifier_in_process else "its own process"})

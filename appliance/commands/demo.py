@@ -216,13 +216,14 @@ def run(args: argparse.Namespace) -> int:
     from appliance.recognition import PostureTracker, RecognitionSettings
     from appliance.robots import load_robots, select_robot
 
-    select_robot(load_robots(), args.robot)  # a bad --robot fails before any folder is made
+    robot = select_robot(load_robots(), args.robot)  # a bad --robot fails before any folder is made
     out = Path(tempfile.mkdtemp(prefix="appliance-demo-")) if args.out is None else prepare_frame_folder(args.out)
     started = time.monotonic()
     scene = render_scene(out, args.robot, args.frames, args.seed, args.vessel_radius)
     rendered = time.monotonic()
     frames, calibration = load_inputs(out, None)
-    tracker = PostureTracker(calibration, RecognitionSettings(dark_level=dark_level_of(calibration, args.dark_level)))
+    tracker = PostureTracker(calibration, RecognitionSettings(dark_level=dark_level_of(calibration, args.dark_level)),
+                             body=robot)
     with (out / "postures.jsonl").open("w", encoding="utf-8") as stream:
         track_folder(frames, tracker, stream, fps=30.0)
     tracked = time.monotonic()  # (track_folder ended the progress line)

@@ -14,6 +14,10 @@ check: exit status 1 when one is exceeded. A missing, unreadable or frameless re
 status 2 and a message naming the file. A recording cut off by a crash is replayed up to its last
 complete frame, and the summary says so.
 
+The session's robot (its config's ``robot.id``) is given to the tracker, as the live loop gave it, so its
+known body places the centroid and tips in the replay too (a recording that names none is replayed
+model-free).
+
 What makes a replay differ from the live loop even with unchanged code: a session that kept only
 every n-th pair (``recording.frames_every``) replays a tracker that saw fewer frames, so its region
 of interest prediction and its resolution of epipolar-plane ambiguities from history can differ.
@@ -219,6 +223,24 @@ def replay(reader: Any, tracker: Any, out: IO[str]) -> dict[str, Any]:
     return result
 
 
+def _recorded_robot(reader: Any) -> Any:
+    """The robot the session tracked (its config's ``robot.id``), whose body the live tracker placed the
+    centroid and tips by, so the replay does too; None (model-free) where the recording does not name one
+    the catalogue has."""
+    from appliance.errors import ConfigError
+    from appliance.robots import load_robots, select_robot
+
+    robot = (reader.config or {}).get("robot")
+    robot_id = robot.get("id") if isinstance(robot, dict) else None
+    if not isinstance(robot_id, int):
+        return None
+    try:
+        return select_robot(load_robots(), robot_id)
+    except ConfigError as err:
+        log.warning("%s: %s; replaying without the robot's body", reader.path, err)
+        return None
+
+
 def run(args: argparse.Namespace) -> int:
     from appliance.errors import InputDataError
     from appliance.geometry import Calibration
@@ -230,7 +252,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputDataError(f"{args.recording}: the recording has no /calibration (cut off before it?)")
     calibration = Calibration.from_dict(reader.calibration, source=f"{args.recording}: /calibration")
     settings = RecognitionSettings(estimator=args.estimator) if args.estimator else RecognitionSettings()
-    tracker = PostureTracker(calibration, settings=settings)
+    tracker = PostureTracker(calibration, settings=settings, body=_recorded_robot(reader))
     with output_stream(args.out, "comparison") as out:
         summary = replay(reader, tracker, out)
     if args.summary is not None:

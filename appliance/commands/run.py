@@ -63,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"appliance run: {session.source}: opening devices...", file=sys.stderr, flush=True)
     with open_devices(session, robot, coils) as devices:
         orchestrator = Orchestrator(
-            frames=devices.frames, amplifier=devices.amplifier, tracker=PostureTracker(devices.calibration, recognition_settings(config, devices.calibration)),
+            frames=devices.frames, amplifier=devices.amplifier, tracker=PostureTracker(devices.calibration, recognition_settings(config, devices.calibration), body=robot),
             follower=follower, safety=SafetySupervisor(config.safety), allocator=CurrentAllocator(ActuationModel(coils)),
             moment_am2=robot.magnetic_moment_am2, settings=LoopSettings.from_config(config), ots=devices.ots,
             names=devices.names)

@@ -8,6 +8,11 @@ file (and the frame number); the records written before it stay valid JSON Lines
 
 Frame folders carry no timestamps, so ``t`` is the frame number divided by ``--fps``.
 
+With ``--robot N`` the tracker knows the robot: its catalogue body (length, where its volume centroid lies
+from the tail) places the centroid and both tips on the reconstructed axis (:mod:`appliance.recognition.body_prior`);
+an id the catalogue does not have ends the command with a message listing the ids there are. Without it the
+centroid and tips are model-free.
+
 Attenuation is a ratio of photon counts, so the detector's dark level (its gray level with no X-rays)
 must come off every pixel first; left in, it compresses the robot's dense parts and biases the
 weighted moments. It is a property of the detector, measured by its dark-frame calibration, so it
@@ -50,8 +55,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", metavar="FILE", type=Path,
                         help="write the posture records here (JSON Lines; default: stdout)")
     parser.add_argument("--robot", metavar="N", type=int,
-                        help="robot number in config/robots.yaml (Table 1 of the seed paper); "
-                             "records then carry its nominal length for comparison")
+                        help="robot number in config/robots.yaml (Table 1 of the seed paper): its known body "
+                             "places the centroid and tips, and records carry its nominal length for comparison")
     parser.add_argument("--estimator", choices=("weighted", "paper"),
                         help="feature estimator (default: the recognition settings' default, 'weighted')")
     parser.add_argument("--fps", type=positive_float, default=DEFAULT_FPS, metavar="HZ",
@@ -105,10 +110,11 @@ class _Progress:
             sys.stderr.flush()
 
 
-def _nominal_length(robot: int) -> float:
+def _robot(robot: int) -> Any:
+    """The catalogue's robot ``robot`` (a ConfigError that lists the ids there are if there is none)."""
     from appliance.robots import load_robots, select_robot
 
-    return select_robot(load_robots(), robot).length_mm
+    return select_robot(load_robots(), robot)
 
 
 def track_folder(frames: BiplaneFolder, tracker: Any, out: IO[str], *, fps: float,
@@ -140,9 +146,12 @@ def run(args: argparse.Namespace) -> int:
     settings = (RecognitionSettings(estimator=args.estimator, dark_level=dark_level) if args.estimator
                 else RecognitionSettings(dark_level=dark_level))
     extra = {}
+    robot = None
     if args.robot is not None:
-        extra = {"robot": args.robot, "nominal_length_mm": _nominal_length(args.robot)}
-    tracker = PostureTracker(calibration, settings=settings)
+        robot = _robot(args.robot)
+        extra = {"robot": args.robot, "nominal_length_mm": robot.length_mm}
+    # With the robot named, its known body places the centroid and tips (recognition settings' body_prior).
+    tracker = PostureTracker(calibration, settings=settings, body=robot)
     log.info("tracking %d frame pairs of %s (dark level %g)", len(frames), frames.root, dark_level)
     try:
         with output_stream(args.out, "posture records") as out:

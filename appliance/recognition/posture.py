@@ -76,6 +76,8 @@ class Posture:
     direction: np.ndarray | None = None  # unit, tail -> head when head_identified
     tips_mm: np.ndarray | None = None  # (2, 3), head first when head_identified
     head_identified: bool = False
+    #: The length between the ends as measured. Where the tracker knows the robot (body prior) the tips are
+    #: its body's, the catalogue length apart, and this stays the measurement (a plausibility signal).
     length_mm: float | None = None
     reprojection_px: float | None = None
     views: dict[str, ViewObservation | None] = field(default_factory=lambda: {"p": None, "q": None})

@@ -68,6 +68,9 @@ class Reconstruction:
     view_features: dict[str, Features2D] = field(default_factory=dict)
     #: Symmetric epipolar distance (px) of the two views' image centroids (the tracker's correspondence test).
     centroid_epipolar_px: float | None = None
+    #: Standard deviation (rad) of the 3D axis direction from the views' axis noise (the default method's),
+    #: None where not computed: how far the ends' rays may meet the axis off their place (:mod:`.body_prior`).
+    axis_sigma_rad: float | None = None
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -256,7 +259,7 @@ def reconstruct_from_front(calibration: Calibration, feat_p: Features2D, feat_q:
         reasons.append(f"the head is not claimed: the tips and the axis planes disagree, the ends reproject "
                        f"{reprojection or float('nan'):.1f} px off one line, and the views do not both see the head")
     return Reconstruction(centroid, d, tips, head_identified, length, reprojection, pairing, plane_angle, ambiguous,
-                          reasons, None, view_tips, final, epipolar_px)
+                          reasons, None, view_tips, final, epipolar_px, values[kernels.OUT_SIGMA])
 
 
 def _with_head(feat: Features2D, head_index: int | None) -> Features2D:

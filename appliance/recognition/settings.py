@@ -173,6 +173,13 @@ class RecognitionSettings(StrictModel):
     #: contrast (overlap with a vessel, say) is flagged ambiguous: reduced accuracy.
     max_clutter: float = Field(0.15, gt=0)
 
+    #: Where the tracker is given the robot's body (``PostureTracker(..., body=...)``: the appliance and the
+    #: benchmarks always give it, ``appliance track`` with ``--robot``), place the centroid and both tips by
+    #: it (:mod:`.body_prior`): the reconstructed axis and one axial position, measured by the moment
+    #: centroid and the ends that are clean, give the body's volume centroid and its tips. Off (or no body
+    #: given): the model-free centroid and tips.
+    body_prior: bool = True
+
     # -- tracking -----------------------------------------------------------------------------------
     #: Margin (px) of the region of interest around the predicted robot image.
     roi_margin_px: int = Field(14, ge=4, le=256)

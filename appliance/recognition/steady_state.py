@@ -184,6 +184,13 @@ class SteadyPair:
         """The noise sigma each view of the last call used."""
         return _SIGMAS.unpack_from(self.out)  # type: ignore[return-value]
 
+    def body_inputs(self) -> tuple[dict[str, float], float]:
+        """What :func:`.body_prior.place_body` takes of the last call: each view's :attr:`.Blob.clutter` (what
+        its blob would carry) and the 3D axis' sigma (rad, the front's, as the reconstruction keeps it)."""
+        o, r = sk.OUT_VIEW_SIZE, roi_kernels.REFINED + 11
+        return ({"p": float(self.out[r]), "q": float(self.out[o + r])},
+                float(self.out[sk.OUT_FRONT + rk.OUT_SIGMA]))
+
     def objects(self) -> tuple[tuple[Blob, Blob], tuple[Features2D, Features2D], int | None, np.ndarray]:
         """The last call's blobs and features, the front's status (None where the compiled axis uncertainty
         is not Python's to the last bit: then run the whole reconstruction) and output."""

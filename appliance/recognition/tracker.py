@@ -16,6 +16,9 @@ vessel's remainder, are not paired). A frame where that fails too, or whose obje
 (:mod:`.plausibility`), is reported lost (``ok: false`` with a reason), never with a made-up pose.
 Where the views' head claims disagree and only one view overlaps another structure, the clean view's
 claim is taken (``_head_by_clean_view``; the reconstruction alone leaves such a head unidentified).
+A tracker given the robot's body (``body=``, with ``settings.body_prior``) places the centroid and tips
+of every ok posture by it (:func:`.body_prior.place_body`), on the plain frames' postures and the
+others' alike.
 """
 from __future__ import annotations
 
@@ -34,6 +37,7 @@ from appliance.geometry import (
     triangulate,
 )
 from appliance.geometry_kernels import project_segment
+from appliance.recognition.body_prior import BodyModel, end_clutter, place_body
 from appliance.recognition.correspondence import pair_candidates, pairing_rms
 from appliance.recognition.detection import detect
 from appliance.recognition.features import Features2D, features
@@ -97,9 +101,15 @@ NOISE_REMEASURE_FRAMES = 30
 class PostureTracker:
     """Recognises the robot's posture in successive biplane frame pairs (see the module docstring)."""
 
-    def __init__(self, calibration: Calibration, settings: RecognitionSettings | None = None) -> None:
+    def __init__(self, calibration: Calibration, settings: RecognitionSettings | None = None,
+                 body: BodyModel | object | None = None) -> None:
         self.calibration = calibration
         self.settings = settings or RecognitionSettings()
+        #: The robot's body (a :class:`.BodyModel`, or a catalogue :class:`appliance.robots.RobotSpec`) where
+        #: the centroid and tips are placed by it (``settings.body_prior``); None: model-free.
+        self.body: BodyModel | None = None
+        if body is not None and self.settings.body_prior:
+            self.body = body if isinstance(body, BodyModel) else BodyModel.of(body)
         self.F = fundamental_matrix(calibration.p, calibration.q)
         #: Both views packed for the compiled kernels (the calibration is immutable).
         self._packed = calibration.packed
@@ -152,6 +162,8 @@ class PostureTracker:
                 plain = pair.plain_posture(frame, t, timings)
                 if plain is not None:
                     # A plain frame: the posture the decisions below make, built from the call's numbers.
+                    if self.body is not None:
+                        plain = place_body(self.calibration, plain, self.body, self.settings, *self._pair.body_inputs())
                     timings["triangulation"] = (time.perf_counter_ns() - start) / 1e3
                     self._remember_plain(t, plain.direction)
                     self._lean_from = pair.out
@@ -212,6 +224,8 @@ class PostureTracker:
             return posture
         rec = declutter(self.calibration, rec, blobs, self.settings)
         posture = self._posture(frame, t, rec, blobs)
+        if self.body is not None:
+            posture = self._placed(posture, rec, blobs, images)
         posture.timings_us = timings
         self._remember(posture)
         self._lean_from = self._pair.out if paired else None
@@ -496,6 +510,21 @@ class PostureTracker:
                        reason=reason, direction_candidates=rec.candidates,
                        pairing_rms_px=(rec.pairing.rms_a_px, rec.pairing.rms_b_px),
                        plane_angle_deg=rec.plane_angle_deg)
+
+    def _placed(self, posture: Posture, rec: Reconstruction, blobs: dict[str, Blob], images: dict[str, np.ndarray]
+                ) -> Posture:
+        """:func:`.body_prior.place_body` on a posture of the per-view path: the views' clutter, the axis'
+        sigma, and near each end of a view over another structure, how much structure its neighbourhood
+        shows."""
+        clutter = {name: blob.clutter for name, blob in blobs.items()}
+        ends = {}
+        for name, blob in blobs.items():
+            view = posture.views.get(name)
+            if blob.clutter > self.settings.max_clutter and view is not None and name in self._log_bg:
+                ends[name] = end_clutter(images[name], self._log_bg[name], blob, view.centroid_px, view.tips_px,
+                                         self.settings)
+        return place_body(self.calibration, posture, self.body, self.settings, clutter, rec.axis_sigma_rad or 0.0,
+                          ends)
 
     def _remember(self, posture: Posture) -> None:
         assert posture.centroid_mm is not None

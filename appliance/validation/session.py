@@ -248,7 +248,7 @@ def run_validation(session: Session, robots: Sequence[RobotSpec], plan: Plan, la
                                                         progress=lambda text, head=head: progress(f"{head}: {text}"))
                     transform, source = fiducials.registration.transform, "measured with the fiducial phantom"
             mapper = ReferenceMapper(transform, holder, robot)
-            tracker = PostureTracker(devices.calibration)
+            tracker = PostureTracker(devices.calibration, body=robot)
             samples: list[Sample] = []
             centroids: list[list[float]] = []
             for posture in range(plan.postures):

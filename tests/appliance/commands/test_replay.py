@@ -43,8 +43,9 @@ def session() -> tuple[Calibration, list[tuple[int, float, np.ndarray, np.ndarra
 
 
 def _record(path: Path, calibration: Calibration, frames: list, *, frames_every: int = 1,
-            tamper: dict[int, dict[str, Any]] | None = None, images: bool = True) -> Path:
-    with Recorder.create(path, config={"name": "replay test"}, calibration=calibration.to_dict(),
+            tamper: dict[int, dict[str, Any]] | None = None, images: bool = True,
+            config: dict[str, Any] | None = None) -> Path:
+    with Recorder.create(path, config=config or {"name": "replay test"}, calibration=calibration.to_dict(),
                          frames_every=frames_every, fsync=False, threaded=False) as rec:
         for frame, t, image_p, image_q, posture in frames:
             posture = copy.deepcopy(posture)
@@ -84,6 +85,26 @@ def test_replay_reproduces_the_live_postures(session: tuple, tmp_path: Path,
     assert summary["centroid_diff_mm"]["n"] == FRAMES - 1 and summary["state_changes"] == 0
     assert summary["replayed_states"] == {"ok": FRAMES - 1, "lost": 1}
     assert f"replayed {FRAMES} recorded frame pairs" in err and "state changed (ok/ambiguous/lost) in 0 frames" in err
+
+
+def test_replay_places_the_recorded_robots_body(session: tuple, tmp_path: Path,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    # A session that tracked robot 1 (config robot.id) recorded postures placed by its body: the replay gives the
+    # tracker that robot too and reproduces them; without it (a model-free replay) the centroids differ.
+    from appliance.robots import load_robots
+
+    calibration, frames = session
+    tracker = PostureTracker(calibration, body=load_robots()[1])
+    placed = [(frame, t, p, q, tracker.process(p, q, frame=frame, t=t).to_record()) for frame, t, p, q, _ in frames]
+    moved = [abs(np.subtract(a[4]["centroid_mm"], b[4]["centroid_mm"])).max() for a, b in zip(frames, placed)
+             if a[4]["ok"]]
+    assert max(moved) > 1e-3  # the body moved the centroids (else this test shows nothing)
+    path = _record(tmp_path / "robot1.mcap", calibration, placed, config={"name": "replay test", "robot": {"id": 1}})
+    code, lines, err = _replay(capsys, str(path), "--max-centroid-mm", "0.001", "--max-state-changes", "0")
+    assert code == 0, err
+    path = _record(tmp_path / "unnamed.mcap", calibration, placed)
+    code, lines, err = _replay(capsys, str(path), "--max-centroid-mm", "0.001")
+    assert code == 1
 
 
 def test_disagreeing_recording_is_caught(session: tuple, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -61,16 +61,30 @@ def test_one_call_per_pair_equals_the_per_view_path(views: dict[str, object], ca
     _track_both_ways(views, calibration, robot, start, velocity, direction, monkeypatch)
 
 
+@pytest.mark.parametrize("robot,start,velocity,direction", [
+    (1, (3.0, -4.0, 5.0), (20.0, 10.0, -5.0), (0.3, 0.5, 0.81)),
+    (6, (1.0, 0.0, 6.0), (10.0, -10.0, 0.0), (0.6, -0.3, 0.74)),    # over the vessel
+])
+def test_both_paths_place_the_known_body_alike(views: dict[str, object], calibration: Calibration, robot: int,
+                                               start: tuple[float, ...], velocity: tuple[float, ...],
+                                               direction: tuple[float, ...], monkeypatch: pytest.MonkeyPatch) -> None:
+    # With the robot's body given (body_prior), the plain frames' postures and the per-view path's stay the same.
+    _track_both_ways(views, calibration, robot, start, velocity, direction, monkeypatch, body=True)
+
+
 def _track_both_ways(views: dict[str, object], calibration: Calibration, robot: int, start: tuple[float, ...],
-                     velocity: tuple[float, ...], direction: tuple[float, ...], monkeypatch: pytest.MonkeyPatch) -> int:
-    """Six frames through a tracker with the one call per pair and one without; asserts they are the same in
-    every bit; returns how many frames the first built from the call's numbers (plain frames)."""
+                     velocity: tuple[float, ...], direction: tuple[float, ...], monkeypatch: pytest.MonkeyPatch,
+                     body: bool = False) -> int:
+    """Six frames through a tracker with the one call per pair and one without (both given the robot's body if
+    ``body``); asserts they are the same in every bit; returns how many frames the first built from the call's
+    numbers (plain frames)."""
     spec = load_robots()[robot]
     body = RobotBody(spec.length_mm, spec.diameter_mm, spec.tip_angle_deg, spec.attenuation_per_mm)
     vessel = VesselPhantom(smooth_centreline(S_BEND_CENTRELINE_MM), 2.5, 0.06)
     renderer = BiplaneRenderer(views, body, vessel=vessel, settings=ImagingSettings(), seed=robot)
     settings = RecognitionSettings(dark_level=ImagingSettings().dark_level)
-    paired, per_view = PostureTracker(calibration, settings), PostureTracker(calibration, settings)
+    known = spec if body else None
+    paired, per_view = PostureTracker(calibration, settings, body=known), PostureTracker(calibration, settings, body=known)
     monkeypatch.setattr(per_view._pair, "usable", lambda *args: False)
     # What each tracker searched and found (the blobs and features behind its postures).
     calls = {"pair": 0}

@@ -1,0 +1,192 @@
+"""The body prior (appliance.recognition.body_prior): the robot's known body placed on the reconstructed axis.
+
+Synthetic postures (the true body projected into the small session views, then one feature moved as clutter
+moves it) check the combination: a clean frame keeps its place, a cluttered end or a slid moment centroid
+is outvoted by the clean evidence, a head run on into a vessel is not believed, a centroid and tails that disagree
+(or kept tips of the wrong length) flag the frame, an unidentified head is ordered only where the body's offset says
+so decisively. A rendered robot-6 frame over
+the vessel checks the tracker's use of it."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from appliance.geometry import Calibration
+from appliance.recognition import PostureTracker, RecognitionSettings
+from appliance.recognition.body_prior import BodyModel, place_body
+from appliance.recognition.posture import Posture, ViewObservation
+from appliance.robots import load_robots
+from drivers.loopback.scene_builders import S_BEND_CENTRELINE_MM, smooth_centreline
+from drivers.loopback.xray_render import BiplaneRenderer, ImagingSettings, RobotBody, RobotPose, VesselPhantom
+
+SETTINGS = RecognitionSettings()
+
+
+@pytest.fixture(scope="module")
+def robot6() -> BodyModel:
+    return BodyModel.of(load_robots()[6])
+
+
+def _truth(body: BodyModel, centroid: tuple[float, ...], direction: tuple[float, ...]
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    c, u = np.array(centroid, dtype=float), np.array(direction, dtype=float)
+    u /= np.linalg.norm(u)
+    tail = c - body.centroid_from_tail_mm * u
+    return c, u, tail + body.length_mm * u, tail
+
+
+def _posture(calibration: Calibration, c: np.ndarray, u: np.ndarray, head: np.ndarray, tail: np.ndarray,
+             moved: dict[tuple[str, int], float] | None = None, centroid_shift_mm: float = 0.0,
+             head_identified: bool = True) -> Posture:
+    """The posture a perfect pipeline would give for this body, with ``moved[(view, end)]`` px added to an
+    end along its image axis (outwards) and the 3D moment centroid slid along the axis by ``centroid_shift``."""
+    moved = moved or {}
+    views = {}
+    for name in ("p", "q"):
+        view = calibration.views[name]
+        uv_c, uv_h, uv_t = view.project(np.vstack([c, head, tail]))
+        tips = np.array([uv_h, uv_t])
+        for end in (0, 1):
+            outward = tips[end] - uv_c
+            tips[end] = tips[end] + moved.get((name, end), 0.0) * outward / np.linalg.norm(outward)
+        axis = (tips[0] - tips[1]) / np.linalg.norm(tips[0] - tips[1])
+        views[name] = ViewObservation(uv_c, tips, axis, 100, (100.0, 4.0), 0 if head_identified else None)
+    measured = [c + np.dot(view_tip_point - c, u) * u for view_tip_point in (head, tail)]
+    return Posture(frame=0, t=0.0, ok=True, centroid_mm=c + centroid_shift_mm * u, direction=u,
+                   tips_mm=np.array(measured), head_identified=head_identified,
+                   length_mm=float(np.linalg.norm(head - tail)), views=views)
+
+
+def test_a_clean_frame_is_placed_where_it_is(calibration: Calibration, robot6: BodyModel) -> None:
+    c, u, head, tail = _truth(robot6, (2.0, -3.0, 4.0), (0.6, -0.3, 0.74))
+    placed = place_body(calibration, _posture(calibration, c, u, head, tail, centroid_shift_mm=0.02), robot6, SETTINGS)
+    # The exact tails (each about as sharp as the centroid here) pull a moment centroid 0.02 mm off about half
+    # way back; the tips are the body's, L apart.
+    assert 0.005 < np.linalg.norm(placed.centroid_mm - c) < 0.013
+    assert np.linalg.norm(placed.tips_mm[0] - head) < 0.013 and np.linalg.norm(placed.tips_mm[1] - tail) < 0.013
+    assert np.linalg.norm(placed.tips_mm[0] - placed.tips_mm[1]) == pytest.approx(robot6.length_mm)
+    assert not placed.ambiguous and placed.reason is None
+
+
+def test_an_end_over_a_vessel_is_outvoted_by_the_clean_evidence(calibration: Calibration, robot6: BodyModel) -> None:
+    c, u, head, tail = _truth(robot6, (2.0, -3.0, 4.0), (0.6, -0.3, 0.74))
+    # View p over a vessel: its blob's centroid slid 0.4 mm along the axis, its tail ran on 6 px into the vessel.
+    posture = _posture(calibration, c, u, head, tail, moved={("p", 1): 6.0}, centroid_shift_mm=0.4)
+    placed = place_body(calibration, posture, robot6, SETTINGS, {"p": 0.3, "q": 0.02}, 0.0, {"p": (0.01, 0.4)})
+    assert np.linalg.norm(placed.centroid_mm - c) < 0.08
+    assert np.linalg.norm(placed.tips_mm[1] - tail) < 0.08
+    # Without the clutter measures the same numbers are believed as clean: the two tails and the centroid disagree,
+    # and the result lies between them (the combination is by the sigmas, not by a rule per case).
+    blind = place_body(calibration, posture, robot6, SETTINGS)
+    assert np.linalg.norm(blind.centroid_mm - c) > np.linalg.norm(placed.centroid_mm - c)
+
+
+def test_a_head_run_on_into_a_vessel_is_not_believed(calibration: Calibration, robot6: BodyModel) -> None:
+    c, u, head, tail = _truth(robot6, (2.0, -3.0, 4.0), (0.6, -0.3, 0.74))
+    posture = _posture(calibration, c, u, head, tail, moved={("p", 0): 15.0, ("q", 0): 15.0})
+    posture = dataclasses.replace(posture, length_mm=robot6.length_mm + 3.0)
+    placed = place_body(calibration, posture, robot6, SETTINGS)
+    # The apexes, 3 mm off, are not used: the body sits where the centroid and the tails put it, which agree,
+    # so nothing casts doubt on the place (the measured length stays the measurement).
+    assert np.linalg.norm(placed.centroid_mm - c) < 0.01
+    assert np.linalg.norm(placed.tips_mm[0] - head) < 0.01
+    assert not placed.ambiguous and placed.length_mm == robot6.length_mm + 3.0
+
+
+def test_a_centroid_and_tails_that_disagree_flag_the_frame(calibration: Calibration, robot6: BodyModel) -> None:
+    c, u, head, tail = _truth(robot6, (2.0, -3.0, 4.0), (0.6, -0.3, 0.74))
+    # Neither view is over another structure by its clutter, yet the moment centroid slid 0.6 mm: the tails
+    # say so, and the frame is flagged rather than reported clean.
+    posture = _posture(calibration, c, u, head, tail, centroid_shift_mm=0.6)
+    placed = place_body(calibration, posture, robot6, SETTINGS, {"p": 0.1, "q": 0.12})
+    assert placed.ambiguous and "the moment centroid puts the body 0.60 mm along its axis from" in placed.reason
+    assert np.linalg.norm(placed.centroid_mm - c) < np.linalg.norm(posture.centroid_mm - c)
+    calm = place_body(calibration, _posture(calibration, c, u, head, tail, centroid_shift_mm=0.03), robot6, SETTINGS)
+    assert not calm.ambiguous
+
+
+def test_kept_tips_of_the_wrong_length_flag_the_frame(calibration: Calibration) -> None:
+    rod = BodyModel(length_mm=12.0, centroid_from_tail_mm=6.0, cone_length_mm=0.0, diameter_mm=2.0)
+    c, u, head, tail = _truth(rod, (1.0, 1.0, 1.0), (0.5, 0.5, 0.7))
+    # Both ends measured 4 px short in both views: either order fits alike (badly), so it stays undecided.
+    short = {(name, end): -4.0 for name in ("p", "q") for end in (0, 1)}
+    posture = _posture(calibration, c, u, head, tail, moved=short, head_identified=False)
+    posture = dataclasses.replace(posture, length_mm=10.2)
+    placed = place_body(calibration, posture, rod, SETTINGS)
+    # Head not identified and the order undecided: the measured tips are kept, and their length says they are off.
+    assert placed.ambiguous and "the measured length 10.2 mm is not the robot's 12 mm" in placed.reason
+    np.testing.assert_array_equal(placed.tips_mm, posture.tips_mm)
+
+
+@pytest.mark.parametrize("flip", [False, True])
+def test_an_unidentified_head_is_ordered_by_the_body_offset(calibration: Calibration, robot6: BodyModel,
+                                                            flip: bool) -> None:
+    c, u, head, tail = _truth(robot6, (-4.0, 2.0, 1.0), (0.2, 0.9, -0.4))
+    posture = _posture(calibration, c, u, head, tail, centroid_shift_mm=0.05, head_identified=False)
+    if flip:  # the posture's direction points at the tail: its first tip is the tail
+        posture = dataclasses.replace(posture, direction=-u, tips_mm=posture.tips_mm[::-1].copy(), views={
+            n: dataclasses.replace(v, tips_px=v.tips_px[::-1].copy(), axis=-v.axis) for n, v in posture.views.items()})
+    placed = place_body(calibration, posture, robot6, SETTINGS)
+    # Robot 6's centroid is 9.2 mm from its tail and 20.8 from its apex: the ends say which is which, but the
+    # head is still not claimed and the tips keep the posture's order (+direction end first). (The other order
+    # would put every point 11.5 mm off; the tails pull the centroid, 0.05 mm off, about half way back.)
+    assert not placed.head_identified
+    first, second = (tail, head) if flip else (head, tail)
+    assert np.linalg.norm(placed.tips_mm[0] - first) < 0.035 and np.linalg.norm(placed.tips_mm[1] - second) < 0.035
+    assert np.linalg.norm(placed.centroid_mm - c) < 0.035
+
+
+def test_a_symmetric_body_with_an_unidentified_head_keeps_its_measured_place(calibration: Calibration) -> None:
+    rod = BodyModel(length_mm=12.0, centroid_from_tail_mm=6.0, cone_length_mm=0.0, diameter_mm=2.0)
+    c, u, head, tail = _truth(rod, (1.0, 1.0, 1.0), (0.5, 0.5, 0.7))
+    posture = _posture(calibration, c, u, head, tail, centroid_shift_mm=0.05, head_identified=False)
+    placed = place_body(calibration, posture, rod, SETTINGS)
+    # Either order fits alike: nothing says which end is which, so the measured centroid and tips stay.
+    np.testing.assert_array_equal(placed.centroid_mm, posture.centroid_mm)
+    np.testing.assert_array_equal(placed.tips_mm, posture.tips_mm)
+
+
+def test_an_uncertain_axis_leaves_the_place_to_the_centroid(calibration: Calibration, robot6: BodyModel) -> None:
+    c, u, head, tail = _truth(robot6, (2.0, -3.0, 4.0), (0.6, -0.3, 0.74))
+    posture = _posture(calibration, c, u, head, tail, moved={("p", 1): 4.0, ("q", 1): 4.0}, centroid_shift_mm=0.03)
+    sure = place_body(calibration, posture, robot6, SETTINGS, axis_sigma_rad=0.0005)
+    unsure = place_body(calibration, posture, robot6, SETTINGS, axis_sigma_rad=0.07)   # 4 degrees
+    along = lambda p: float(np.dot(p.centroid_mm - c, u))  # noqa: E731
+    # Tails 4 px off both views: believed on a sure axis, hardly at all on one uncertain by degrees.
+    assert along(sure) < -0.3
+    assert abs(along(unsure) - 0.03) < 0.05
+
+
+def test_a_lost_posture_and_the_paper_estimator_are_left_alone(calibration: Calibration, robot6: BodyModel) -> None:
+    lost = Posture.lost(0, 0.0, "no robot-like object in view p")
+    assert place_body(calibration, lost, robot6, SETTINGS) is lost
+    c, u, head, tail = _truth(robot6, (2.0, -3.0, 4.0), (0.6, -0.3, 0.74))
+    posture = _posture(calibration, c, u, head, tail, centroid_shift_mm=0.3)
+    assert place_body(calibration, posture, robot6, RecognitionSettings(estimator="paper")) is posture
+
+
+def test_a_rendered_robot_6_over_the_vessel(views: dict[str, object], calibration: Calibration) -> None:
+    spec = load_robots()[6]
+    body = RobotBody(spec.length_mm, spec.diameter_mm, spec.tip_angle_deg, spec.attenuation_per_mm)
+    vessel = VesselPhantom(smooth_centreline(S_BEND_CENTRELINE_MM), 2.5, 0.06)
+    renderer = BiplaneRenderer(views, body, vessel=vessel, settings=ImagingSettings(), seed=6)
+    # The robot lies over the S-bend vessel in view p (found on these 384 x 336 views, seed 6).
+    pose = RobotPose(np.array([-2.87, 5.12, 2.7]), np.array([-0.594, -0.55, -0.587]))
+    pair = renderer.render(pose)
+    settings = RecognitionSettings(dark_level=ImagingSettings().dark_level)
+    placed = PostureTracker(calibration, settings, body=spec).process(pair.images["p"], pair.images["q"])
+    free = PostureTracker(calibration, settings).process(pair.images["p"], pair.images["q"])
+    assert placed.ok and placed.head_identified
+    assert placed.ambiguous and "overlaps another structure in view p" in placed.reason
+    tips = max(np.linalg.norm(placed.tips_mm[0] - pair.head_mm), np.linalg.norm(placed.tips_mm[1] - pair.tail_mm))
+    assert np.linalg.norm(placed.centroid_mm - pose.centroid_mm) < 0.15 and tips < 0.2
+    # The axis and the measured length are the model-free pipeline's; only the place along the axis moved.
+    np.testing.assert_array_equal(placed.direction, free.direction)
+    assert placed.length_mm == free.length_mm
+    off_axis = np.cross(placed.centroid_mm - free.centroid_mm, free.direction)
+    assert np.linalg.norm(off_axis) < 1e-9
+    # Settings can turn it off: then the tracker given the body is the model-free one.
+    off = PostureTracker(calibration, settings.model_copy(update={"body_prior": False}), body=spec)
+    np.testing.assert_array_equal(off.process(pair.images["p"], pair.images["q"]).centroid_mm, free.centroid_mm)
