@@ -162,10 +162,12 @@ class PostureTracker:
                 plain = pair.plain_posture(frame, t, timings)
                 if plain is not None:
                     # A plain frame: the posture the decisions below make, built from the call's numbers.
+                    placed = None
                     if self.body is not None:
                         plain = place_body(self.calibration, plain, self.body, self.settings, *self._pair.body_inputs())
+                        placed = plain.centroid_mm
                     timings["triangulation"] = (time.perf_counter_ns() - start) / 1e3
-                    self._remember_plain(t, plain.direction)
+                    self._remember_plain(t, plain.direction, placed)
                     self._lean_from = pair.out
                     return plain
                 (blob_p, blob_q), (feat_p, feat_q), status, out = pair.objects()
@@ -225,7 +227,7 @@ class PostureTracker:
         rec = declutter(self.calibration, rec, blobs, self.settings)
         posture = self._posture(frame, t, rec, blobs)
         if self.body is not None:
-            posture = self._placed(posture, rec, blobs, images)
+            posture = self._placed(posture, rec, blobs, {"p": image_p, "q": image_q})
         posture.timings_us = timings
         self._remember(posture)
         self._lean_from = self._pair.out if paired else None
@@ -548,14 +550,16 @@ class PostureTracker:
                              velocity, view_outline_px=outline,
                              direction_xyz=None if direction is None else tuple(direction.tolist()))
 
-    def _remember_plain(self, t: float, direction: np.ndarray) -> None:
+    def _remember_plain(self, t: float, direction: np.ndarray, placed_centroid: np.ndarray | None = None) -> None:
         """:meth:`_remember` of the steady pair's plain posture at ``t`` (``direction`` its direction), from
         the call's numbers (:attr:`.SteadyPair.plain_track`: the same floats as the posture's fields), the
-        track updated in place. (Anything that changes a plain posture's pose after ``plain_posture`` must
-        have the track follow it: these numbers are the call's, not read back from the posture.)"""
+        track updated in place. ``placed_centroid``: the centroid the body prior moved the posture to (it
+        changes only the centroid and the tips), which the track follows as :meth:`_remember` does."""
         track = self._track
         assert track is not None
         centroid, direction_xyz, length, outline_p, outline_q = self._pair.plain_track
+        if placed_centroid is not None:
+            centroid = (float(placed_centroid[0]), float(placed_centroid[1]), float(placed_centroid[2]))
         if track.lost_frames == 0 and t > track.t:
             dt = t - track.t
             (x, y, z), (ox, oy, oz) = centroid, track.centroid

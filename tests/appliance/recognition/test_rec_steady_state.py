@@ -114,6 +114,9 @@ def _track_both_ways(views: dict[str, object], calibration: Calibration, robot: 
         assert paired.last_search == per_view.last_search
         assert a.to_record() == b.to_record()
         _same(a, b, skip=("timings_us",))
+        # The next frame's prediction too (the body prior moves a plain posture's centroid).
+        for field in ("t", "centroid", "length_mm", "velocity", "lost_frames", "view_outline_px", "direction_xyz"):
+            assert getattr(paired._track, field) == getattr(per_view._track, field), field
         plain += (id(paired), n) not in kept and paired.last_search == "roi"
         if (id(paired), n) in kept:
             (blobs_a, feats_a), (blobs_b, feats_b) = kept[(id(paired), n)], kept[(id(per_view), n)]
