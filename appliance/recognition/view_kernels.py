@@ -709,19 +709,33 @@ def _fill_values(smooth, wy0, wx0, hh, ww, support, sy0, sy1, sx0, sx1, fill_row
             sm_t[i] = acc_t
             sm_b[i] = acc_b
         v_top, v_bottom = sm_t, sm_b
-    for i in range(nc):
-        c = c0 + i
-        top, bottom = tops[i], bottoms[i]
-        span = float(np.float32(bottom - top))
-        # float32 difference, float64 line: the arithmetic of the numpy code this replaced.
-        vt, rise = float(v_top[i]), float(v_bottom[i] - v_top[i])
-        for r in range(top + 1, bottom):
-            value = np.float32(vt + rise * ((float(np.float32(r)) - top) / span))
-            if transpose:
+    # float32 difference, float64 line: the arithmetic of the numpy code this replaced. Each line's
+    # supported run lies inside the support's box: only its pixels are written (a line crossing no
+    # support pixel has no run).
+    if transpose:
+        for i in range(nc):
+            c = c0 + i
+            top, bottom = tops[i], bottoms[i]
+            span = float(np.float32(bottom - top))
+            vt, rise = float(v_top[i]), float(v_bottom[i] - v_top[i])
+            for r in range(max(top + 1, sx0), bottom):
+                value = np.float32(vt + rise * ((float(np.float32(r)) - top) / span))
                 if support[c - sy0, r - sx0]:
                     out[c, r] = value
-            elif support[r - sy0, c - sx0]:
-                out[r, c] = value
+        return
+    # Lines are columns: filled row by row (the arrays' order, every line's division in one vector
+    # loop) with each pixel's value as its column gives it.
+    vts = np.empty(nc)
+    rises = np.empty(nc)
+    spans = np.empty(nc)
+    for i in range(nc):
+        vts[i], rises[i] = float(v_top[i]), float(v_bottom[i] - v_top[i])
+        spans[i] = float(np.float32(bottoms[i] - tops[i]))
+    for r in range(sy0, sy1):
+        rf = float(np.float32(r))
+        for i in range(nc):
+            if tops[i] < r and r < bottoms[i] and support[r - sy0, c0 + i - sx0]:
+                out[r, c0 + i] = np.float32(vts[i] + rises[i] * ((rf - tops[i]) / spans[i]))
 
 
 # The background under the body, along the structure it lies on. ``s`` runs along the axis from the
