@@ -97,7 +97,8 @@ def _prefixes():  # type: ignore[no-untyped-def]
     return _prefix(sk.search_pair, "pair_upto", "stop, svstop, rstop, ",
                    [("roi_kernels.search_view(", "search_upto(svstop, rstop, "),
                     ("            if status != roi_kernels.FOUND:\n",
-                     "            if svstop < 99:\n                continue\n            if status != roi_kernels.FOUND:\n"),
+                     "            if svstop < 99:\n                continue\n"
+                     "            if status != roi_kernels.FOUND:\n"),
                     ("        if not ok:\n", "        if stop < 0:\n            continue\n        if not ok:\n")],
                    PAIR_ANCHORS, "    if stop == {k}:\n        return PAIR_PER_VIEW, w_p, m_p, w_q, m_q\n",
                    {"search_upto": search})
