@@ -62,6 +62,59 @@ def _select(buf, n, k):  # pragma: no cover - compiled
 
 
 @kernel
+def median_f32(values, n):  # pragma: no cover - compiled
+    """:func:`median_inplace` of ``values[:n]`` (float32, no NaN, C-contiguous; left unchanged), found on the
+    values' bits instead of by partitioning: quickselect's comparisons are branches the processor mispredicts
+    about every other time, and the ring median of :func:`refine` (a few hundred values) cost ~5 us a view.
+
+    Each float32 maps to an integer key in the same order (positive: the bits with the sign bit set;
+    negative: the bits inverted), and the k-th smallest key is found a byte at a time (four histograms of
+    the keys whose higher bytes are already known). Equal values have equal keys, so the value returned is
+    the k-th smallest as quickselect returns it; only a zero's sign orders (-0 before +0) where quickselect
+    takes either."""
+    k = n // 2
+    bits = values.view(np.uint32)
+    keys = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        b = np.int64(bits[i])
+        keys[i] = (b ^ 0xFFFFFFFF) if b >= 0x80000000 else (b | 0x80000000)
+    hist = np.empty(256, dtype=np.int64)
+    prefix, known, rank = 0, 0, k
+    for step in range(4):
+        shift = 24 - 8 * step
+        hist[:] = 0
+        for i in range(n):
+            key = keys[i]
+            hist[(key >> shift) & 255] += 1 if (key & known) == prefix else 0
+        below, b = 0, 0
+        while below + hist[b] <= rank:
+            below += hist[b]
+            b += 1
+        prefix |= b << shift
+        known |= 255 << shift
+        rank -= below
+    # ``prefix`` is the k-th smallest key; the (k-1)-th is it too unless fewer than k keys lie below it.
+    upper = values[0]
+    lower_key, n_below = -1, 0
+    for i in range(n):
+        key = keys[i]
+        if key == prefix:
+            upper = values[i]
+        elif key < prefix:
+            n_below += 1
+            lower_key = max(lower_key, key)
+    if n % 2:
+        return upper
+    lower = upper
+    if n_below >= k:
+        for i in range(n):
+            if keys[i] == lower_key:
+                lower = values[i]
+                break
+    return (lower + upper) / 2
+
+
+@kernel
 def median_inplace(buf, n):  # pragma: no cover - compiled
     """``np.median(buf[:n])`` in the array's dtype arithmetic (float32 stays float32), reordering ``buf``."""
     k = n // 2
@@ -238,28 +291,26 @@ def gaussian5(a, g):  # pragma: no cover - compiled
     """5x5 separable Gaussian ``g`` with replicated borders (cv2.GaussianBlur's BORDER_REPLICATE), float32.
 
     Rows first, then columns; each output is ``g0 v0 + g1 v1 + ... + g4 v4`` summed in that order.
-    The interior runs without index clamping so that the compiler vectorises it."""
+    The interior runs without index clamping so that the compiler vectorises it. Rows are indexed in
+    2D, not taken as row views (each view takes and releases a reference count: eight a row cost
+    more than the row's arithmetic on a ROI's ~60-px rows)."""
     h, w = a.shape
     g0, g1, g2, g3, g4 = g[0], g[1], g[2], g[3], g[4]
     tmp = np.empty((h, w), dtype=np.float32)
     for y in range(h):
-        row = a[y]
-        t = tmp[y]
         for x in range(min(2, w)):
-            t[x] = (g0 * row[max(x - 2, 0)] + g1 * row[max(x - 1, 0)] + g2 * row[x]
-                    + g3 * row[min(x + 1, w - 1)] + g4 * row[min(x + 2, w - 1)])
+            tmp[y, x] = (g0 * a[y, max(x - 2, 0)] + g1 * a[y, max(x - 1, 0)] + g2 * a[y, x]
+                         + g3 * a[y, min(x + 1, w - 1)] + g4 * a[y, min(x + 2, w - 1)])
         for x in range(2, w - 2):
-            t[x] = g0 * row[x - 2] + g1 * row[x - 1] + g2 * row[x] + g3 * row[x + 1] + g4 * row[x + 2]
+            tmp[y, x] = g0 * a[y, x - 2] + g1 * a[y, x - 1] + g2 * a[y, x] + g3 * a[y, x + 1] + g4 * a[y, x + 2]
         for x in range(max(w - 2, 2), w):
-            t[x] = (g0 * row[max(x - 2, 0)] + g1 * row[max(x - 1, 0)] + g2 * row[x]
-                    + g3 * row[min(x + 1, w - 1)] + g4 * row[min(x + 2, w - 1)])
+            tmp[y, x] = (g0 * a[y, max(x - 2, 0)] + g1 * a[y, max(x - 1, 0)] + g2 * a[y, x]
+                         + g3 * a[y, min(x + 1, w - 1)] + g4 * a[y, min(x + 2, w - 1)])
     out = np.empty((h, w), dtype=np.float32)
     for y in range(h):
-        r0, r1, r3, r4 = tmp[max(y - 2, 0)], tmp[max(y - 1, 0)], tmp[min(y + 1, h - 1)], tmp[min(y + 2, h - 1)]
-        r2 = tmp[y]
-        o = out[y]
+        y0, y1, y3, y4 = max(y - 2, 0), max(y - 1, 0), min(y + 1, h - 1), min(y + 2, h - 1)
         for x in range(w):
-            o[x] = g0 * r0[x] + g1 * r1[x] + g2 * r2[x] + g3 * r3[x] + g4 * r4[x]
+            out[y, x] = g0 * tmp[y0, x] + g1 * tmp[y1, x] + g2 * tmp[y, x] + g3 * tmp[y3, x] + g4 * tmp[y4, x]
     return out
 
 
@@ -280,16 +331,15 @@ def label_above(smooth, threshold):  # pragma: no cover - compiled
     n_runs = 0
     prev_start, prev_end = 0, 0  # runs of the row above: [prev_start, prev_end)
     for y in range(h):
-        row = smooth[y]
         row_start = n_runs
         k = prev_start
         x = 0
         while x < w:
-            if not row[x] > threshold:
+            if not smooth[y, x] > threshold:
                 x += 1
                 continue
             x0 = x
-            while x < w and row[x] > threshold:
+            while x < w and smooth[y, x] > threshold:
                 x += 1
             r = n_runs
             run_y[r], run_x0[r], run_x1[r] = y, x0, x
@@ -443,29 +493,30 @@ def _scanline_fill(allowed, out, seeds_y, seeds_x, n_seeds, ys, xs, n):  # pragm
     for i in range(n_seeds):
         stack_y[top], stack_x[top] = seeds_y[i], seeds_x[i]
         top += 1
+    # Pixels are read by 2D index, not through row views: a view costs a reference count taken and
+    # released (two atomic calls), and this loop pops once per seed (every core pixel): the row views
+    # were half the fill's time.
     while top > 0:
         top -= 1
         y, x = stack_y[top], stack_x[top]
-        row, done = allowed[y], out[y]
-        if done[x] or not row[x]:
+        if out[y, x] or not allowed[y, x]:
             continue
         x0 = x
-        while x0 > 0 and row[x0 - 1] and not done[x0 - 1]:
+        while x0 > 0 and allowed[y, x0 - 1] and not out[y, x0 - 1]:
             x0 -= 1
         x1 = x
-        while x1 < w - 1 and row[x1 + 1] and not done[x1 + 1]:
+        while x1 < w - 1 and allowed[y, x1 + 1] and not out[y, x1 + 1]:
             x1 += 1
         for xx in range(x0, x1 + 1):
-            done[xx] = 1
+            out[y, xx] = 1
             ys[n], xs[n] = y, xx
             n += 1
         for ny in (y - 1, y + 1):
             if ny < 0 or ny >= h:
                 continue
-            nrow, ndone = allowed[ny], out[ny]
             inside = False
             for xx in range(max(x0 - 1, 0), min(x1 + 2, w)):
-                free = nrow[xx] != 0 and ndone[xx] == 0
+                free = allowed[ny, xx] != 0 and out[ny, xx] == 0
                 if free and not inside:
                     stack_y[top], stack_x[top] = ny, xx
                     top += 1
@@ -658,19 +709,33 @@ def _fill_values(smooth, wy0, wx0, hh, ww, support, sy0, sy1, sx0, sx1, fill_row
             sm_t[i] = acc_t
             sm_b[i] = acc_b
         v_top, v_bottom = sm_t, sm_b
-    for i in range(nc):
-        c = c0 + i
-        top, bottom = tops[i], bottoms[i]
-        span = float(np.float32(bottom - top))
-        # float32 difference, float64 line: the arithmetic of the numpy code this replaced.
-        vt, rise = float(v_top[i]), float(v_bottom[i] - v_top[i])
-        for r in range(top + 1, bottom):
-            value = np.float32(vt + rise * ((float(np.float32(r)) - top) / span))
-            if transpose:
+    # float32 difference, float64 line: the arithmetic of the numpy code this replaced. Each line's
+    # supported run lies inside the support's box: only its pixels are written (a line crossing no
+    # support pixel has no run).
+    if transpose:
+        for i in range(nc):
+            c = c0 + i
+            top, bottom = tops[i], bottoms[i]
+            span = float(np.float32(bottom - top))
+            vt, rise = float(v_top[i]), float(v_bottom[i] - v_top[i])
+            for r in range(max(top + 1, sx0), bottom):
+                value = np.float32(vt + rise * ((float(np.float32(r)) - top) / span))
                 if support[c - sy0, r - sx0]:
                     out[c, r] = value
-            elif support[r - sy0, c - sx0]:
-                out[r, c] = value
+        return
+    # Lines are columns: filled row by row (the arrays' order, every line's division in one vector
+    # loop) with each pixel's value as its column gives it.
+    vts = np.empty(nc)
+    rises = np.empty(nc)
+    spans = np.empty(nc)
+    for i in range(nc):
+        vts[i], rises[i] = float(v_top[i]), float(v_bottom[i] - v_top[i])
+        spans[i] = float(np.float32(bottoms[i] - tops[i]))
+    for r in range(sy0, sy1):
+        rf = float(np.float32(r))
+        for i in range(nc):
+            if tops[i] < r and r < bottoms[i] and support[r - sy0, c0 + i - sx0]:
+                out[r, c0 + i] = np.float32(vts[i] + rises[i] * ((rf - tops[i]) / spans[i]))
 
 
 # The background under the body, along the structure it lies on. ``s`` runs along the axis from the
@@ -906,6 +971,93 @@ def _dilated_box(ys, xs, n, half_widths, hh, ww):  # pragma: no cover - compiled
 
 
 @kernel
+def _ring_values(ys, xs, n, outer_hw, inner_hw, hh, ww, smooth, wy0, wx0):  # pragma: no cover - compiled
+    """The smoothed image (window ``hh x ww`` at ``wy0, wx0``) on the ring around the pixels ``(ys, xs)[:n]``:
+    their dilation by the row spans ``outer_hw`` less their dilation by ``inner_hw`` (or less the pixels
+    themselves if that is one pixel wide), on the bounding box grown by the outer radius, in raster order;
+    ``(values, count)``. The same pixels as :func:`_dilated_box` and :func:`dilate_runs` twice, in one pass:
+    both dilations' marks from the same runs, one prefix sum over both."""
+    r = (outer_hw.size - 1) // 2
+    g = (inner_hw.size - 1) // 2
+    y0, y1, x0, x1 = hh, -1, ww, -1
+    for i in range(n):
+        y0, y1 = min(y0, ys[i]), max(y1, ys[i])
+        x0, x1 = min(x0, xs[i]), max(x1, xs[i])
+    y0, x0 = max(y0 - r, 0), max(x0 - r, 0)
+    y1, x1 = min(y1 + r + 1, hh), min(x1 + r + 1, ww)
+    h, w = y1 - y0, x1 - x0
+    src = np.zeros((h, w), dtype=np.uint8)
+    for i in range(n):
+        src[ys[i] - y0, xs[i] - x0] = 1
+    marks_o = np.zeros((h, w + 1), dtype=np.int32)
+    marks_i = np.zeros((h, w + 1), dtype=np.int32)
+    for y in range(h):
+        x = 0
+        while x < w:
+            if src[y, x] == 0:
+                x += 1
+                continue
+            start = x
+            while x < w and src[y, x] != 0:
+                x += 1
+            end = x  # exclusive
+            for dy in range(-r, r + 1):
+                yy = y + dy
+                if yy < 0 or yy >= h:
+                    continue
+                hw = outer_hw[dy + r]
+                marks_o[yy, max(start - hw, 0)] += 1
+                marks_o[yy, min(end + hw, w)] -= 1
+            if g > 0:
+                for dy in range(-g, g + 1):
+                    yy = y + dy
+                    if yy < 0 or yy >= h:
+                        continue
+                    hw = inner_hw[dy + g]
+                    marks_i[yy, max(start - hw, 0)] += 1
+                    marks_i[yy, min(end + hw, w)] -= 1
+    values = np.empty(h * w, dtype=np.float32)
+    count = 0
+    for y in range(h):
+        acc_o, acc_i = 0, 0
+        for x in range(w):
+            acc_o += marks_o[y, x]
+            acc_i += marks_i[y, x]
+            inner = acc_i > 0 if g > 0 else src[y, x] != 0
+            if acc_o > 0 and not inner:
+                values[count] = smooth[wy0 + y0 + y, wx0 + x0 + x]
+                count += 1
+    return values, count
+
+
+@kernel
+def _capsule_columns(gy, ax, ay, lo_s, hi_s, half_width, cx, ww):  # pragma: no cover - compiled
+    """Of a window row at ``gy`` (px) from the centre along y, the columns ``[c0, c1)`` outside which no
+    pixel has ``lo_s <= s <= hi_s`` and ``|t| <= half_width`` (``s = gx ax + gy ay``, ``t = -gx ay + gy ax``,
+    ``gx = column - cx``; ``ax, ay`` unit): the two slabs' intersection widened by 2 px, far beyond any
+    rounding of ``s`` and ``t`` (the slabs' bounds are only used where the axis' component is > 1e-6)."""
+    lo, hi = -np.inf, np.inf
+    if abs(ax) > 1e-6:
+        u0, u1 = (lo_s - gy * ay) / ax, (hi_s - gy * ay) / ax
+        lo, hi = max(lo, min(u0, u1)), min(hi, max(u0, u1))
+    if abs(ay) > 1e-6:
+        u0, u1 = (gy * ax - half_width) / ay, (gy * ax + half_width) / ay
+        lo, hi = max(lo, min(u0, u1)), min(hi, max(u0, u1))
+    if not lo <= hi:
+        return 0, 0
+    c0 = 0 if lo + cx - 2.0 < 0.0 else (ww if lo + cx - 2.0 > ww else math.floor(lo + cx - 2.0))
+    c1 = ww if hi + cx + 3.0 > ww else (0 if hi + cx + 3.0 < 0.0 else math.ceil(hi + cx + 3.0))
+    return c0, c1
+
+
+@kernel
+def _not_refined():  # pragma: no cover - compiled
+    """:func:`refine`'s result for a component that is not a plausible robot (built only where returned:
+    three allocations on every call otherwise)."""
+    return 0, np.zeros((0, 0), dtype=np.float32), np.zeros((0, 0), dtype=np.uint8), np.zeros(13)
+
+
+@kernel
 def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_inner, near_hw):  # pragma: no cover
     """One detected component refined into the robot's weights (see segmentation._blob_from_component).
 
@@ -932,9 +1084,6 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
     smooth_gain, fill_rows, fill_cols, fade_step = p[9], int(p[10]), int(p[11]), int(p[12])
     along_structure, direction_margin = p[13] != 0.0, p[14]
     sigma_s = sigma * smooth_gain
-    empty_w = np.zeros((0, 0), dtype=np.float32)
-    empty_m = np.zeros((0, 0), dtype=np.uint8)
-    no_scalars = np.zeros(13)
     # The component's peak (its first maximum in raster order) and its core: the part above
     # core_fraction of the peak, 8-connected to it.
     # (Rows are sliced first throughout: indices from range(0, n) are known non-negative, so the
@@ -947,7 +1096,7 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
                 peak32, py, px = srow[x], by + y, bx + x
     peak = float(peak32)
     if peak < min_peak:
-        return 0, empty_w, empty_m, no_scalars
+        return _not_refined()
     level32 = np.float32(core_fraction * peak)
     strong = np.empty((bh, bw), dtype=np.uint8)
     for y in range(bh):
@@ -961,7 +1110,7 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
     seed_x = np.array([px - bx])
     n = _scanline_fill(strong, seen, seed_y, seed_x, 1, cys, cxs, 0)
     if n < min_pixels:
-        return 0, empty_w, empty_m, no_scalars
+        return _not_refined()
     sx = sy = 0
     xmin, xmax, ymin, ymax = bw, -1, bh, -1
     for i in range(n):
@@ -970,7 +1119,7 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
         xmin, xmax = min(xmin, cxs[i]), max(xmax, cxs[i])
         ymin, ymax = min(ymin, cys[i]), max(ymax, cys[i])
     if max(xmax - xmin, ymax - ymin) + 1 > max_extent:
-        return 0, empty_w, empty_m, no_scalars
+        return _not_refined()
     cx, cy = sx / n, sy / n
     # The scatter summed in raster order, as the numpy code did: a body at 45 degrees has equal
     # diagonal terms, and the rounding then picks the background fill's direction.
@@ -984,7 +1133,7 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
                 sxy += dx * dy
     l1, l2, ax, ay = _principal(sxx, syy, sxy, n)
     if math.sqrt(l1 / max(l2, 1e-3)) > max_elongation:
-        return 0, empty_w, empty_m, no_scalars
+        return _not_refined()
     s_min, s_max, t_max = np.inf, -np.inf, 0.0
     for i in range(n):
         dx, dy = cxs[i] - cx, cys[i] - cy
@@ -1006,24 +1155,11 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
         cys[i] += by - wy0
         cxs[i] += bx - wx0
     # The local baseline: the median of a ring around the core.
-    gap_r = (ring_inner.size - 1) // 2
-    outer, oy0, ox0 = _dilated_box(cys, cxs, n, ring_outer, hh, ww)
-    oh, ow = outer.shape
-    inner_src = np.zeros((oh, ow), dtype=np.uint8)
-    for i in range(n):
-        inner_src[cys[i] - oy0, cxs[i] - ox0] = 1
-    inner = dilate_runs(inner_src, ring_inner) if gap_r > 0 else inner_src
-    ring_vals = np.empty(oh * ow, dtype=np.float32)
-    nr = 0
-    for y in range(oh):
-        for x in range(ow):
-            if outer[y, x] and not inner[y, x]:
-                ring_vals[nr] = smooth[wy0 + oy0 + y, wx0 + ox0 + x]
-                nr += 1
-    baseline = float(median_inplace(ring_vals, nr)) if nr > 0 else 0.0
+    ring_vals, nr = _ring_values(cys, cxs, n, ring_outer, ring_inner, hh, ww, smooth, wy0, wx0)
+    baseline = float(median_f32(ring_vals, nr)) if nr > 0 else 0.0
     height = peak - baseline
     if height < min_peak:
-        return 0, empty_w, empty_m, no_scalars
+        return _not_refined()
     # The body: above the attenuation beside it by ``level``, inside the capsule, 8-connected to the core.
     level = max(support_sigma * sigma_s, support_fraction * height)
     lvl32 = np.float32(level)
@@ -1034,21 +1170,26 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
     # against their own slice's (a gather on every pixel of the window cost ~35 % of the kernel). The
     # result is the same: float32 subtraction is monotonic, so a pixel above its slice's baseline is
     # above the lowest one.
+    # Only the columns of each row that the capsule can reach are tested (_capsule_columns: the
+    # capsule is a rotated rectangle, a third of its window or less); the others are outside it.
     low32 = side.min()
-    above = np.empty((hh, ww), dtype=np.uint8)
+    above = np.zeros((hh, ww), dtype=np.uint8)
     for y in range(hh):
         gy = (wy0 + y) - oy
-        srow, arow = smooth[wy0 + y, wx0:wx1], above[y]
-        for x in range(ww):
-            gx = (wx0 + x) - ox
+        c0, c1 = _capsule_columns(gy, ax, ay, lo_s, hi_s, half_width, ox - wx0, ww)
+        if c1 <= c0:
+            continue
+        srow, arow = smooth[wy0 + y, wx0 + c0:wx0 + c1], above[y, c0:c1]
+        for j in range(c1 - c0):
+            gx = (wx0 + c0 + j) - ox
             s_, t_ = gx * ax + gy * ay, -gx * ay + gy * ax
-            arow[x] = (((srow[x] - low32) > lvl32) & (abs(t_) <= half_width)  # no branch: vectorised
+            arow[j] = (((srow[j] - low32) > lvl32) & (abs(t_) <= half_width)  # no branch: vectorised
                        & (s_ >= lo_s) & (s_ <= hi_s))
-        for x in range(ww):
-            if arow[x]:
-                k = min(max(int(((wx0 + x) - ox) * ax + gy * ay - lo_s), 0), nside - 1)
-                if not (srow[x] - side[k]) > lvl32:
-                    arow[x] = 0
+        for j in range(c1 - c0):
+            if arow[j]:
+                k = min(max(int(((wx0 + c0 + j) - ox) * ax + gy * ay - lo_s), 0), nside - 1)
+                if not (srow[j] - side[k]) > lvl32:
+                    arow[j] = 0
     mask = np.zeros((hh, ww), dtype=np.uint8)
     mys = np.empty(hh * ww, dtype=np.int64)
     mxs = np.empty(hh * ww, dtype=np.int64)
@@ -1079,7 +1220,7 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
         else:
             mask[mys[i], mxs[i]] = 0
     if count == 0:
-        return 0, empty_w, empty_m, no_scalars
+        return _not_refined()
     # The support: a rectangle around the body (along its axis), on its bounding box in the window.
     lo_t, hi_s_, lo_s_, hi_t = in_t + pad, in_hi + pad, in_lo - pad, in_t + pad
     gxs = np.empty(4)
@@ -1132,7 +1273,9 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
             w_lo = max(w_lo, abs(t_of[i]))
         if s_of[i] >= in_hi - 3.0:
             w_hi = max(w_hi, abs(t_of[i]))
-    background = np.zeros((hh, ww), dtype=np.float32)
+    # Only the support's pixels are written and read (its box ends at sy1, sx1): no need to clear the rest
+    # of the window.
+    background = np.zeros((max(sy1, 0), max(sx1, 0)), dtype=np.float32)
     bmin, bmax = np.inf, -np.inf
     if along_structure:
         bmin, bmax = _fill_across(smooth, wy0, wx0, hh, ww, ox, oy, ax, ay, lo_s_, hi_s_, hi_t, fill_rows,
@@ -1158,7 +1301,7 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
     body = mask[ky0:ky1, kx0:kx1].copy()
     m00, m10, m01, mu20, mu02, mu11 = moments(weights)
     if not m00 > 0.0:
-        return 0, empty_w, empty_m, no_scalars
+        return _not_refined()
     _, minor, _, _ = _principal(mu20, mu02, mu11, 1)
     scalars = np.array([float(wy0 + ky0), float(wy0 + ky1), float(wx0 + kx0), float(wx0 + kx1),
                         height, baseline, m00, m10 / m00, m01 / m00, 1.0 if edge else 0.0, minor,
@@ -1184,17 +1327,18 @@ def _eig2(s11, s22, s12):  # pragma: no cover - compiled
 def axial_profile_of(weights, c0, c1, v0, v1):  # pragma: no cover - compiled
     """The weights' axial profile in 1-px bins with linear interpolation, [1 2 1]/4 smoothed; ``(profile, s0)``."""
     h, w = weights.shape
-    s_min, i_max = np.inf, -1
+    s_min, s_max, i_max = np.inf, -np.inf, -1
     for y in range(h):
         for x in range(w):
             if weights[y, x] != 0:
                 s = (x - c0) * v0 + (y - c1) * v1
                 s_min = min(s_min, s)
+                s_max = max(s_max, s)
     s0 = math.floor(s_min) - 2.0
-    for y in range(h):
-        for x in range(w):
-            if weights[y, x] != 0:
-                i_max = max(i_max, int(((x - c0) * v0 + (y - c1) * v1) - s0))
+    if s_max > -np.inf:
+        # The last bin, max(int(s - s0)) over the weighted pixels, is that of the largest s: rounding
+        # and truncation (s - s0 >= 2) are monotonic, so one pass over the weights gives both ends.
+        i_max = int(s_max - s0)
     n = i_max + 4
     lower = np.zeros(n)
     upper = np.zeros(n)

@@ -38,6 +38,21 @@ def test_median_matches_numpy_for_odd_and_even_counts() -> None:
         assert vk.median_inplace(values.copy(), n) == np.float32(np.median(values))
 
 
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 7, 400, 401])
+def test_median_on_the_bits_equals_quickselect_and_numpy(n: int) -> None:
+    rng = np.random.default_rng(n)
+    spread = rng.normal(0.1, 0.3, n).astype(np.float32)  # both signs
+    ties = (np.round(rng.normal(0.0, 2.0, n)) / 8).astype(np.float32)  # runs of equal values, zeros
+    tiny = (rng.normal(0.0, 1.0, n) * 1e-30).astype(np.float32)  # subnormals and their neighbours
+    for values in (spread, ties, tiny, np.full(n, np.float32(0.25)), np.sort(spread)[::-1].copy()):
+        before = values.copy()
+        expected = vk.median_inplace(values.copy(), n)
+        assert vk.median_f32(values, n) == expected == np.median(values)
+        assert np.array_equal(values, before)  # left in place
+    padded = np.concatenate([spread, np.full(5, np.float32(9.0))])  # only the first n count
+    assert vk.median_f32(padded, n) == np.median(spread)
+
+
 def test_labelling_equals_opencv_components_with_stats() -> None:
     rng = np.random.default_rng(4)
     for trial in range(12):
