@@ -140,8 +140,8 @@ class _Poll:
     binary: bool
 
 
-_POLLS = {mode: _Poll(encode_command(mode.upper(), f"{OPTION_TRANSFORMS:04X}"), f"{mode.upper()}:{OPTION_TRANSFORMS:04X}",
-                      mode == "bx") for mode in ("tx", "bx")}
+_POLLS = {mode: _Poll(encode_command(mode.upper(), f"{OPTION_TRANSFORMS:04X}"),
+                      f"{mode.upper()}:{OPTION_TRANSFORMS:04X}", mode == "bx") for mode in ("tx", "bx")}
 
 
 class NDITracker:

@@ -276,8 +276,8 @@ def decode_bx(raw: bytes) -> TrackingReply:
     for record in records:
         handle, status = record[0], record[1]
         if status == _VALID:
-            tools.append(ToolRecord(handle, ToolState.VALID, record[2:6], record[6:9], record[9],  # type: ignore[arg-type]
-                                    port_status=record[10], frame=record[11]))
+            tools.append(ToolRecord(handle, ToolState.VALID, record[2:6],  # type: ignore[arg-type]
+                                    record[6:9], record[9], port_status=record[10], frame=record[11]))
         elif status == _MISSING:
             tools.append(ToolRecord(handle, ToolState.MISSING, port_status=record[2], frame=record[3]))
         else:

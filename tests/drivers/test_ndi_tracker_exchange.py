@@ -369,7 +369,8 @@ def _assert_samples_match(samples: list, tools: list, rom_of: dict[int, str], t:
 
     assert len(samples) == len(tools)
     for sample, tool in zip(samples, tools):
-        assert (sample.handle, sample.rom, sample.t) == (tool.handle, rom_of.get(tool.handle, f"handle-{tool.handle:02x}"), t)
+        rom = rom_of.get(tool.handle, f"handle-{tool.handle:02x}")
+        assert (sample.handle, sample.rom, sample.t) == (tool.handle, rom, t)
         assert sample.missing == (tool.state != ToolState.VALID)
         assert sample.disabled == (tool.state == ToolState.DISABLED)
         if tool.state == ToolState.DISABLED and mode == "bx":   # BX sends neither for a disabled handle
