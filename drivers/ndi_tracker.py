@@ -305,7 +305,7 @@ class NDITracker:
             raw = self._exchange(poll.wire, poll.label, self.reply_timeout_s, poll.binary)
             t = self.clock()
         if isinstance(raw, str):
-            raw = self._checked_text(raw, poll.label, "TX")
+            raw = self._checked_text(raw, poll.label)
         try:
             if isinstance(raw, bytes):
                 return self._bx_samples(decode_bx_records(raw)[0], t)
@@ -361,7 +361,7 @@ class NDITracker:
             log.debug("%s -> %d BX bytes", self.where, len(raw))
             return raw
         log.debug("%s -> %r", self.where, raw)
-        text = self._checked_text(raw, label, name)
+        text = self._checked_text(raw, label)
         if name in ("INIT", "COMM", "PVWR", "PINIT", "PENA", "PHF", "TSTART", "TSTOP") and text != OKAY:
             raise ProtocolError(f"tracker at {self.where} answered {text[:40]!r} to {label} instead of OKAY")
         return text
@@ -385,7 +385,7 @@ class NDITracker:
                 return header + self._read_exact(total - BX_HEADER_BYTES, deadline, label)
             return self._read_text(deadline, label, first)
 
-    def _checked_text(self, text: str, label: str, name: str) -> str:
+    def _checked_text(self, text: str, label: str) -> str:
         """A text reply's text, unless it is ``ERRORxx`` (NdiCommandError); a WARNING is logged."""
         if text.startswith("ERROR"):
             code = parse_error(text)
