@@ -18,6 +18,7 @@ LinkLostError.
 from __future__ import annotations
 
 import logging
+import math
 import struct
 import threading
 import time
@@ -51,7 +52,7 @@ from firmware_protocol.ndi_replies import (
     ToolState,
     TrackingReply,
     bx_total_length,
-    decode_bx,
+    decode_bx_records,
     decode_tx_text,
     reply_is_binary,
 )
@@ -101,14 +102,46 @@ class ToolSample:
         return (float(self.transform[0, 3]), float(self.transform[1, 3]), float(self.transform[2, 3]))
 
 
+def _rotation_rows(w: float, x: float, y: float, z: float) -> tuple[tuple[float, float, float], ...]:
+    """Unit quaternion (w, x, y, z) -> the rows of its rotation matrix, normalised first (TX carries 4
+    decimals, BX float32). Plain floats: the reader builds one per tool per 60 Hz frame in a thread that
+    shares the interpreter with the control loop, and a handful of small numpy calls cost it ~10 us there.
+    A zero quaternion gives NaN everywhere, as numpy's 0/0 did before (BX can carry one; nothing raises)."""
+    norm = math.sqrt(w * w + x * x + y * y + z * z)
+    if norm == 0.0:
+        return ((math.nan,) * 3,) * 3
+    w, x, y, z = w / norm, x / norm, y / norm, z / norm
+    return ((1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
+            (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
+            (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)))
+
+
 def quaternion_to_matrix(q: tuple[float, float, float, float]) -> np.ndarray:
     """Unit quaternion (w, x, y, z) -> 3x3 rotation matrix (normalised first: TX carries 4 decimals)."""
-    w, x, y, z = np.asarray(q, float) / np.linalg.norm(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    return np.array(_rotation_rows(*(float(v) for v in q)))
+
+
+def pose_transform(q: tuple[float, float, float, float], translation_mm: tuple[float, float, float]) -> np.ndarray:
+    """Quaternion (w, x, y, z) and translation (mm) -> the read-only 4x4 tool-to-tracker transform."""
+    (r0, r1, r2) = _rotation_rows(float(q[0]), float(q[1]), float(q[2]), float(q[3]))
+    tx, ty, tz = translation_mm
+    transform = np.array(((r0[0], r0[1], r0[2], tx), (r1[0], r1[1], r1[2], ty), (r2[0], r2[1], r2[2], tz),
+                          (0.0, 0.0, 0.0, 1.0)))
+    transform.setflags(write=False)     # samples are shared between threads
+    return transform
+
+
+@dataclass(frozen=True)
+class _Poll:
+    """A tracking-data command encoded once (the reader sends it 60 times a second)."""
+
+    wire: bytes
+    label: str
+    binary: bool
+
+
+_POLLS = {mode: _Poll(encode_command(mode.upper(), f"{OPTION_TRANSFORMS:04X}"),
+                      f"{mode.upper()}:{OPTION_TRANSFORMS:04X}", mode == "bx") for mode in ("tx", "bx")}
 
 
 class NDITracker:
@@ -261,49 +294,86 @@ class NDITracker:
         self.tracking = False
 
     def read_frame(self, mode: str = "tx") -> list[ToolSample]:
-        """One frame of every enabled tool, with TX (text) or BX (binary) replies."""
-        if mode not in ("tx", "bx"):
+        """One frame of every enabled tool, with TX (text) or BX (binary) replies.
+
+        The sample time ``t`` is the host clock right after the whole reply is in (before it is parsed).
+        """
+        poll = _POLLS.get(mode)
+        if poll is None:
             raise ValueError(f"mode is 'tx' or 'bx', not {mode!r}")
-        params = f"{OPTION_TRANSFORMS:04X}"
         with self._io:
-            raw = self.command(mode.upper(), params, binary=(mode == "bx"))
+            raw = self._exchange(poll.wire, poll.label, self.reply_timeout_s, poll.binary)
             t = self.clock()
+        if isinstance(raw, str):
+            raw = self._checked_text(raw, poll.label)
         try:
-            reply = decode_bx(raw) if isinstance(raw, bytes) else decode_tx_text(raw)
+            if isinstance(raw, bytes):
+                return self._bx_samples(decode_bx_records(raw)[0], t)
+            return self._samples(decode_tx_text(raw), t)
         except FrameError as err:
             raise ProtocolError(f"tracker at {self.where}: malformed {mode.upper()} reply: {err}") from err
-        return self._samples(reply, t)
+
+    def _rom(self, handle: int) -> str:
+        rom = self.tools.get(handle)
+        return rom if rom is not None else f"handle-{handle:02x}"
 
     def _samples(self, reply: TrackingReply, t: float) -> list[ToolSample]:
         samples = []
         for record in reply.tools:
-            rom = self.tools.get(record.handle, f"handle-{record.handle:02x}")
+            rom = self._rom(record.handle)
             if record.state != ToolState.VALID:
                 samples.append(ToolSample(record.handle, rom, record.frame, t, missing=True,
                                           port_status=record.port_status,
                                           disabled=record.state == ToolState.DISABLED))
                 continue
             assert record.quaternion is not None and record.translation_mm is not None
-            transform = np.eye(4)
-            transform[:3, :3] = quaternion_to_matrix(record.quaternion)
-            transform[:3, 3] = record.translation_mm
-            transform.setflags(write=False)     # samples are shared between threads
-            samples.append(ToolSample(record.handle, rom, record.frame, t, missing=False, transform=transform,
+            samples.append(ToolSample(record.handle, rom, record.frame, t, missing=False,
+                                      transform=pose_transform(record.quaternion, record.translation_mm),
                                       quaternion=tuple(float(v) for v in record.quaternion),  # type: ignore[arg-type]
                                       rms_mm=float(record.rms_mm or 0.0), port_status=record.port_status))
+        return samples
+
+    def _bx_samples(self, records: list[tuple], t: float) -> list[ToolSample]:
+        """The samples of :func:`decode_bx_records`'s flat records (the same as :meth:`_samples` of decode_bx)."""
+        samples = []
+        for record in records:
+            handle, status = record[0], record[1]
+            if status == ToolState.VALID:
+                q = record[2:6]
+                samples.append(ToolSample(handle, self._rom(handle), record[11], t, missing=False,
+                                          transform=pose_transform(q, record[6:9]), quaternion=q,
+                                          rms_mm=record[9], port_status=record[10]))
+            elif status == ToolState.MISSING:
+                samples.append(ToolSample(handle, self._rom(handle), record[3], t, missing=True,
+                                          port_status=record[2]))
+            else:
+                samples.append(ToolSample(handle, self._rom(handle), 0, t, missing=True, disabled=True))
         return samples
 
     def command(self, name: str, params: str = "", *, timeout_s: float | None = None,
                 binary: bool = False) -> str | bytes:
         """Send one command (CRC form); return the reply text without CRC, or a BX reply's bytes."""
         label = f"{name}:{params[:24]}{'...' if len(params) > 24 else ''}"
-        deadline = time.monotonic() + (timeout_s if timeout_s is not None else self.reply_timeout_s)
+        wire = encode_command(name, params)
+        log.debug("%s <- %r", self.where, wire)
+        raw = self._exchange(wire, label, timeout_s if timeout_s is not None else self.reply_timeout_s, binary)
+        if isinstance(raw, bytes):
+            log.debug("%s -> %d BX bytes", self.where, len(raw))
+            return raw
+        log.debug("%s -> %r", self.where, raw)
+        text = self._checked_text(raw, label)
+        if name in ("INIT", "COMM", "PVWR", "PINIT", "PENA", "PHF", "TSTART", "TSTOP") and text != OKAY:
+            raise ProtocolError(f"tracker at {self.where} answered {text[:40]!r} to {label} instead of OKAY")
+        return text
+
+    def _exchange(self, wire: bytes, label: str, timeout_s: float, binary: bool) -> str | bytes:
+        """Write one encoded command and read its whole reply: a BX reply's bytes (by its declared length,
+        header CRC checked), or a text reply's text (CRC checked). ``label`` names the command in errors."""
+        deadline = time.monotonic() + timeout_s
         with self._io:
             if self._closed:
                 raise DeviceError(f"tracker at {self.where} is closed")
             self._flush_input()
-            wire = encode_command(name, params)
-            log.debug("%s <- %r", self.where, wire)
             self._io_call(self.port.write, wire)
             first = self._read_exact(1, deadline, label)
             if binary and reply_is_binary(first):
@@ -312,17 +382,17 @@ class NDITracker:
                     total = bx_total_length(header)
                 except FrameError as err:
                     raise ProtocolError(f"tracker at {self.where}: bad BX header for {label}: {err}") from err
-                raw = header + self._read_exact(total - BX_HEADER_BYTES, deadline, label)
-                log.debug("%s -> %d BX bytes", self.where, len(raw))
-                return raw
-            text = self._read_text(deadline, label, first)
-        code = parse_error(text)
-        if code is not None:
-            raise NdiCommandError(label, code, self.where)
-        if text.startswith("WARNING"):
+                return header + self._read_exact(total - BX_HEADER_BYTES, deadline, label)
+            return self._read_text(deadline, label, first)
+
+    def _checked_text(self, text: str, label: str) -> str:
+        """A text reply's text, unless it is ``ERRORxx`` (NdiCommandError); a WARNING is logged."""
+        if text.startswith("ERROR"):
+            code = parse_error(text)
+            if code is not None:
+                raise NdiCommandError(label, code, self.where)
+        elif text.startswith("WARNING"):
             log.warning("%s: %s answered %s", self.where, label, text)
-        elif name in ("INIT", "COMM", "PVWR", "PINIT", "PENA", "PHF", "TSTART", "TSTOP") and text != OKAY:
-            raise ProtocolError(f"tracker at {self.where} answered {text[:40]!r} to {label} instead of OKAY")
         return text
 
     # -- bytes ----------------------------------------------------------------------------------------------
@@ -338,14 +408,18 @@ class NDITracker:
         self._io_call(setattr, self.port, "baudrate", baudrate)
 
     def _flush_input(self) -> None:
-        # A tracker never speaks unprompted; anything waiting is the tail of an abandoned reply.
+        # A tracker never speaks unprompted; anything waiting is the tail of an abandoned reply. With
+        # nothing waiting there is nothing to discard, and the flush's system call is saved (every poll).
         waiting = self._io_call(lambda: self.port.in_waiting)
         if waiting:
             log.warning("%s: discarding %s stale bytes", self.where, waiting)
-        self._io_call(self.port.reset_input_buffer)
+            self._io_call(self.port.reset_input_buffer)
 
     def _read_exact(self, count: int, deadline: float, label: str) -> bytes:
-        data = bytearray()
+        first = self._io_call(self.port.read, count)
+        if len(first) == count:         # the usual case: the port's own timeout waited for all of it
+            return first                # type: ignore[return-value]
+        data = bytearray(first)         # type: ignore[arg-type]
         while len(data) < count:
             if time.monotonic() > deadline:
                 raise DeviceTimeoutError(self._silence(label, data))
@@ -360,7 +434,6 @@ class NDITracker:
             data += self._io_call(self.port.read, max(1, self._available()))  # type: ignore[operator]
             if len(data) > 4096:
                 raise ProtocolError(f"tracker at {self.where}: {len(data)} bytes without CR after {label}")
-        log.debug("%s -> %r", self.where, bytes(data))
         try:
             return decode_reply(bytes(data))
         except FrameError as err:

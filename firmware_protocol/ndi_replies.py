@@ -203,60 +203,85 @@ def encode_bx(reply: TrackingReply) -> bytes:
     return raw
 
 
+_BX_HEADER = struct.Struct("<HH")
+_U16 = struct.Struct("<H")
+#: One BX record, unpacked in one call: handle, status, Q0 Qx Qy Qz, Tx Ty Tz (mm), RMS (mm), port status, frame.
+BX_VALID_RECORD = struct.Struct("<BB8fII")
+#: A MISSING record: handle, status, port status, frame.
+BX_MISSING_RECORD = struct.Struct("<BBII")
+_VALID, _MISSING, _DISABLED = int(ToolState.VALID), int(ToolState.MISSING), int(ToolState.DISABLED)
+
+
 def bx_total_length(header: bytes) -> int:
     """From the first six bytes of a BX reply, the length of the whole reply (header CRC checked)."""
     if len(header) < BX_HEADER_BYTES:
         raise TruncatedFrameError(f"BX header is {BX_HEADER_BYTES} bytes, got {len(header)}")
     if header[:2] != BX_START:
         raise FrameError(f"BX reply starts {header[:2].hex()} instead of c4a5")
-    length, given = struct.unpack_from("<HH", header, 2)
+    length, given = _BX_HEADER.unpack_from(header, 2)
     if crc16(header[:4]) != given:
         raise CrcError(f"BX header CRC {given:04X} given, {crc16(header[:4]):04X} computed")
     return BX_HEADER_BYTES + length + 2
 
 
-def decode_bx(raw: bytes) -> TrackingReply:
-    """A whole BX reply -> records and system status; checks both CRCs and every length."""
+def decode_bx_records(raw: bytes) -> tuple[list[tuple], int]:
+    """A whole BX reply -> (records as flat tuples, system status); the checks of :func:`decode_bx`.
+
+    Each record is what one ``struct`` call unpacks: a VALID handle ``(handle, 1, q0, qx, qy, qz, tx, ty,
+    tz, rms, port_status, frame)`` (:data:`BX_VALID_RECORD`), a MISSING one ``(handle, 2, port_status,
+    frame)``, a DISABLED one ``(handle, 4)``; ``record[1]`` is the :class:`ToolState` value. This is the
+    form a 60 Hz reader wants (no object per field); :func:`decode_bx` builds :class:`ToolRecord` from it.
+    """
     total = bx_total_length(raw[:BX_HEADER_BYTES])
     if len(raw) < total:
         raise TruncatedFrameError(f"BX reply declares {total} bytes, got {len(raw)}")
     if len(raw) > total:
         raise FrameError(f"BX reply declares {total} bytes, got {len(raw)} (trailing bytes)")
     body = raw[BX_HEADER_BYTES:total - 2]
-    (given,) = struct.unpack_from("<H", raw, total - 2)
+    (given,) = _U16.unpack_from(raw, total - 2)
     if crc16(body) != given:
         raise CrcError(f"BX body CRC {given:04X} given, {crc16(body):04X} computed")
+    records: list[tuple] = []
     try:
-        at, tools = 1, []
+        at = 1
         for _ in range(body[0]):
-            handle, status = body[at], body[at + 1]
-            at += 2
-            try:
-                state = ToolState(status)
-            except ValueError as err:
-                raise FrameError(f"BX handle {handle:02X} has unknown status 0x{status:02X}") from err
-            if state == ToolState.DISABLED:
-                tools.append(ToolRecord(handle, state, port_status=0, frame=0))
-                continue
-            pose = None
-            if state == ToolState.VALID:
-                pose = _FLOATS.unpack_from(body, at)
-                at += _FLOATS.size
-            port_status, frame = _U32X2.unpack_from(body, at)
-            at += _U32X2.size
-            if pose is None:
-                tools.append(ToolRecord(handle, state, port_status=port_status, frame=frame))
+            status = body[at + 1]
+            if status == _VALID:
+                record = BX_VALID_RECORD.unpack_from(body, at)
+                at += BX_VALID_RECORD.size
+                if not math.isfinite(sum(record[2:10])):     # a NaN or an infinity anywhere stays one
+                    raise FrameError(f"BX handle {record[0]:02X} carries a non-finite number")
+            elif status == _MISSING:
+                record = BX_MISSING_RECORD.unpack_from(body, at)
+                at += BX_MISSING_RECORD.size
+            elif status == _DISABLED:
+                record = (body[at], status)
+                at += 2
             else:
-                if not all(math.isfinite(v) for v in pose):
-                    raise FrameError(f"BX handle {handle:02X} carries a non-finite number")
-                tools.append(ToolRecord(handle, state, tuple(pose[:4]), tuple(pose[4:7]), pose[7],  # type: ignore[arg-type]
-                                        port_status=port_status, frame=frame))
-        (system_status,) = struct.unpack_from("<H", body, at)
+                raise FrameError(f"BX handle {body[at]:02X} has unknown status 0x{status:02X}")
+            records.append(record)
+        (system_status,) = _U16.unpack_from(body, at)
         at += 2
     except (IndexError, struct.error) as err:
         raise TruncatedFrameError(f"BX body of {len(body)} bytes ends inside a record") from err
     if at != len(body):
         raise FrameError(f"BX body has {len(body) - at} bytes after the system status")
+    return records, system_status
+
+
+def decode_bx(raw: bytes) -> TrackingReply:
+    """A whole BX reply -> records and system status; checks both CRCs and every length."""
+    records, system_status = decode_bx_records(raw)
+    tools = []
+    for record in records:
+        handle, status = record[0], record[1]
+        if status == _VALID:
+            tools.append(ToolRecord(handle, ToolState.VALID, record[2:6],  # type: ignore[arg-type]
+                                    record[6:9], record[9], port_status=record[10], frame=record[11]))
+        elif status == _MISSING:
+            tools.append(ToolRecord(handle, ToolState.MISSING, port_status=record[2], frame=record[3]))
+        else:
+            tools.append(ToolRecord(handle, ToolState.DISABLED, port_status=0, frame=0))
     return TrackingReply(tuple(tools), system_status)
 
 

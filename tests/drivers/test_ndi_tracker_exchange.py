@@ -349,3 +349,128 @@ def test_any_reply_is_a_sample_list_or_a_device_error(mode: str, junk: bytes) ->
     except DeviceError:
         return          # ProtocolError, NdiCommandError or a timeout on a short binary reply: all typed
     assert all(s.missing == (s.transform is None) for s in samples)
+
+
+# -- the samples of a reply: the reader's precompiled path against the definition ---------------------------
+
+def _reference_transform(q: tuple[float, ...], t: tuple[float, ...]) -> np.ndarray:
+    """The 4x4 as the driver defined it before its per-poll path was made lean (numpy, normalised q)."""
+    w, x, y, z = np.asarray(q, float) / np.linalg.norm(q)
+    transform = np.eye(4)
+    transform[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                         [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                         [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]]
+    transform[:3, 3] = t
+    return transform
+
+
+def _assert_samples_match(samples: list, tools: list, rom_of: dict[int, str], t: float, mode: str = "bx") -> None:
+    from firmware_protocol.ndi_replies import ToolState
+
+    assert len(samples) == len(tools)
+    for sample, tool in zip(samples, tools):
+        rom = rom_of.get(tool.handle, f"handle-{tool.handle:02x}")
+        assert (sample.handle, sample.rom, sample.t) == (tool.handle, rom, t)
+        assert sample.missing == (tool.state != ToolState.VALID)
+        assert sample.disabled == (tool.state == ToolState.DISABLED)
+        if tool.state == ToolState.DISABLED and mode == "bx":   # BX sends neither for a disabled handle
+            assert (sample.frame, sample.port_status) == (0, 0)
+        else:
+            assert (sample.frame, sample.port_status) == (tool.frame, tool.port_status)
+        if tool.state != ToolState.VALID:
+            assert sample.transform is None and sample.quaternion is None and sample.rms_mm is None
+            continue
+        assert sample.quaternion == pytest.approx(tool.quaternion, abs=1e-6)      # float32 on BX
+        assert all(type(v) is float for v in sample.quaternion) and type(sample.rms_mm) is float
+        assert sample.rms_mm == pytest.approx(tool.rms_mm, abs=1e-6)
+        assert sample.transform.shape == (4, 4) and not sample.transform.flags.writeable
+        np.testing.assert_allclose(sample.transform, _reference_transform(sample.quaternion, sample.position_mm),
+                                   rtol=0, atol=1e-12)
+        assert sample.position_mm == pytest.approx(tool.translation_mm, abs=1e-3)
+
+
+def _tool_records():
+    from firmware_protocol.ndi_replies import ToolRecord, ToolState
+
+    unit = st.floats(-1, 1, allow_nan=False).map(lambda v: round(v, 4))
+    mm = st.floats(-9999, 9999, allow_nan=False).map(lambda v: round(v, 2))
+    quaternion = st.tuples(unit, unit, unit, unit).filter(lambda q: sum(v * v for v in q) > 1e-3)
+    return st.builds(
+        lambda handle, state, q, t, rms, status, frame: ToolRecord(
+            handle, state, *((q, t, rms) if state == ToolState.VALID else (None, None, None)),
+            port_status=status, frame=frame),
+        st.integers(1, 255), st.sampled_from(list(ToolState)), quaternion, st.tuples(mm, mm, mm),
+        st.floats(0, 9, allow_nan=False).map(lambda v: round(v, 4)),
+        st.integers(0, 0xFFFFFFFF), st.integers(0, 0xFFFFFFFF))
+
+
+@settings(max_examples=150, deadline=None)
+@given(mode=st.sampled_from(["tx", "bx"]), tools=st.lists(_tool_records(), max_size=6))
+def test_frame_samples_are_the_reference_transforms(mode: str, tools: list) -> None:
+    from firmware_protocol.ndi_replies import TrackingReply, encode_bx, encode_tx
+
+    wire = (encode_bx if mode == "bx" else encode_tx)(TrackingReply(tuple(tools), 0))
+    port = ScriptedPort([(cmd(f"{mode.upper()}:0001"), wire)])
+    ndi = NDITracker(port, reply_timeout_s=0.2, clock=lambda: 7.5)  # type: ignore[arg-type]
+    rom_of = {tool.handle: f"tool-{tool.handle}.rom" for tool in tools[::2]}
+    ndi.tools.update(rom_of)
+    _assert_samples_match(ndi.read_frame(mode), tools, rom_of, 7.5, mode)
+    port.finish()
+
+
+def test_bx_missing_tool_beside_a_tracked_one(scripted: list[ScriptedPort]) -> None:
+    from firmware_protocol.ndi_replies import ToolRecord, ToolState, TrackingReply, encode_bx
+
+    tools = [ToolRecord(1, ToolState.VALID, (0.7071, 0.0, 0.7071, 0.0), (12.34, -56.78, -1500.0), 0.1234,
+                        port_status=0x31, frame=208),
+             ToolRecord(2, ToolState.MISSING, port_status=0x31, frame=208)]
+    ndi = tracker(scripted, [(cmd("BX:0001"), encode_bx(TrackingReply(tuple(tools))))], clock=lambda: 1.0)
+    ndi.tools[1] = "ref.rom"
+    samples = ndi.read_frame("bx")
+    _assert_samples_match(samples, tools, {1: "ref.rom"}, 1.0)
+    np.testing.assert_allclose(samples[0].transform[:3, :3] @ [1, 0, 0], [0, 0, -1], atol=1e-4)
+
+
+def test_bx_body_crc_error_is_protocol_error_and_the_next_frame_reads(scripted: list[ScriptedPort]) -> None:
+    from firmware_protocol.ndi_replies import ToolRecord, ToolState, TrackingReply, encode_bx
+
+    good = encode_bx(TrackingReply((ToolRecord(1, ToolState.VALID, (1, 0, 0, 0), (1.0, 2.0, 3.0), 0.1, frame=5),)))
+    bad = good[:-1] + bytes([good[-1] ^ 0x01])
+    ndi = tracker(scripted, [(cmd("BX:0001"), bad), (cmd("BX:0001"), good)])
+    with pytest.raises(ProtocolError, match="malformed BX reply: BX body CRC"):
+        ndi.read_frame("bx")
+    (sample,) = ndi.read_frame("bx")
+    assert sample.frame == 5 and sample.position_mm == pytest.approx((1.0, 2.0, 3.0))
+
+
+def test_zero_quaternion_gives_a_nan_transform_not_an_exception(scripted: list[ScriptedPort]) -> None:
+    from firmware_protocol.ndi_replies import ToolRecord, ToolState, TrackingReply, encode_bx
+
+    wire = encode_bx(TrackingReply((ToolRecord(1, ToolState.VALID, (0, 0, 0, 0), (1.0, 2.0, 3.0), 0.1),)))
+    ndi = tracker(scripted, [(cmd("BX:0001"), wire)])
+    (sample,) = ndi.read_frame("bx")
+    assert not sample.missing and np.isnan(sample.transform[:3, :3]).all()
+    assert sample.position_mm == pytest.approx((1.0, 2.0, 3.0))
+
+
+class FlushCountingPort(ScriptedPort):
+    """A scripted port that may hold stale bytes (an abandoned reply's tail) and counts its flushes."""
+
+    flushes = 0
+
+    def reset_input_buffer(self) -> None:
+        self.flushes += 1
+        self._rx = b""
+
+
+def test_stale_bytes_are_discarded_before_a_command_and_only_then_flushed(caplog) -> None:
+    port = FlushCountingPort([(cmd("TX:0001"), WORKED_TX), (cmd("TX:0001"), WORKED_TX)])
+    ndi = NDITracker(port, reply_timeout_s=0.2)  # type: ignore[arg-type]
+    (sample,) = ndi.read_frame("tx")
+    assert sample.frame == 208 and port.flushes == 0      # nothing waiting: no flush
+    port._rx = b"0000\r+0123400000031"                    # the tail of a reply given up on
+    with caplog.at_level("WARNING", logger="drivers.ndi_tracker"):
+        (sample,) = ndi.read_frame("tx")
+    assert sample.frame == 208 and port.flushes == 1
+    assert "discarding 19 stale bytes" in caplog.text
+    port.finish()

@@ -36,6 +36,7 @@ from firmware_protocol.ndi_replies import (
     TrackingReply,
     bx_total_length,
     decode_bx,
+    decode_bx_records,
     decode_tx,
     encode_bx,
     encode_tx,
@@ -60,6 +61,22 @@ def test_crc_check_vectors(text: bytes, crc: int) -> None:
 
 def test_crc_runs_over_chunks() -> None:
     assert crc16(b"56789", crc16(b"1234")) == 0xBB3D
+
+
+def _crc16_by_definition(data: bytes, crc: int = 0) -> int:
+    """CRC-16/ARC bit by bit (reflected polynomial 0xA001), as the facts document defines it."""
+    for byte in data:
+        crc ^= byte
+        for _ in range(8):
+            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
+    return crc
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.binary(max_size=300), st.integers(0, 0xFFFF))
+def test_table_crc_is_the_bitwise_definition(data: bytes, start: int) -> None:
+    assert crc16(data) == _crc16_by_definition(data)
+    assert crc16(data, start) == _crc16_by_definition(data, start)
 
 
 def test_command_forms_on_the_wire() -> None:
@@ -253,3 +270,54 @@ def test_bx_round_trip_property(records: list[ToolRecord], status: int) -> None:
             assert (got.port_status, got.frame) == (sent.port_status, sent.frame)
         if sent.state == ToolState.VALID:
             assert got.translation_mm == pytest.approx(sent.translation_mm, rel=1e-6, abs=1e-3)
+
+
+def _record_tuple(tool: ToolRecord) -> tuple:
+    """What decode_bx_records promises for one record, built from the record's fields."""
+    if tool.state == ToolState.VALID:
+        assert tool.quaternion is not None and tool.translation_mm is not None and tool.rms_mm is not None
+        pose = struct.unpack("<8f", struct.pack("<8f", *tool.quaternion, *tool.translation_mm, tool.rms_mm))
+        return (tool.handle, 1, *pose, tool.port_status, tool.frame)
+    if tool.state == ToolState.MISSING:
+        return (tool.handle, 2, tool.port_status, tool.frame)
+    return (tool.handle, 4)
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.lists(_record, max_size=12), st.integers(0, 0xFFFF))
+def test_bx_flat_records_carry_every_field(records: list[ToolRecord], status: int) -> None:
+    wire = encode_bx(TrackingReply(tuple(records), status))
+    flat, system_status = decode_bx_records(wire)
+    assert system_status == status
+    assert flat == [_record_tuple(tool) for tool in records]
+    # decode_bx is built from them: the same fields in ToolRecords
+    for got, want in zip(decode_bx(wire).tools, flat):
+        assert _record_tuple(got) == want
+
+
+def test_bx_flat_records_reject_what_decode_bx_rejects() -> None:
+    wire = encode_bx(TrackingReply((WORKED_RECORD, ToolRecord(2, ToolState.MISSING, port_status=0x31, frame=9)), 0))
+    body = bytearray(wire[6:-2])
+    with pytest.raises(CrcError, match="body"):
+        decode_bx_records(wire[:-1] + bytes([wire[-1] ^ 0x01]))
+    with pytest.raises(TruncatedFrameError):
+        decode_bx_records(wire[:-5])
+
+    def reframed(new_body: bytes) -> bytes:
+        header = b"\xc4\xa5" + struct.pack("<H", len(new_body))
+        return header + struct.pack("<H", crc16(header)) + new_body + struct.pack("<H", crc16(new_body))
+
+    unknown = bytearray(body)
+    unknown[2] = 0x08                                       # the first record's status byte
+    with pytest.raises(FrameError, match="unknown status 0x08"):
+        decode_bx_records(reframed(bytes(unknown)))
+    nan = bytearray(body)
+    nan[3 + 4 * 5:3 + 4 * 6] = struct.pack("<f", float("nan"))   # Ty
+    with pytest.raises(FrameError, match="non-finite"):
+        decode_bx_records(reframed(bytes(nan)))
+    infinite = bytearray(body)
+    infinite[3:7] = struct.pack("<f", float("inf"))              # Q0
+    with pytest.raises(FrameError, match="non-finite"):
+        decode_bx(reframed(bytes(infinite)))
+    with pytest.raises(TruncatedFrameError):
+        decode_bx_records(reframed(bytes(body[:20])))
