@@ -397,6 +397,38 @@ def candidates(a, g, detect_sigma, smooth_gain, floor, known_sigma):  # pragma: 
 
 # ----------------------------------------------------------------------------------- binary morphology
 @kernel
+def _mark_run(marks, y, start, end, half_widths):  # pragma: no cover - compiled
+    """Of a dilation by row spans (:func:`dilate_runs`): the run ``[start, end)`` of set pixels in row ``y``
+    marks, in every row ``dy`` away, the run grown by ``half_widths[r + dy]``, as a +1 where it starts
+    and a -1 where it ends in ``marks`` (``h x (w + 1)``; a prefix sum along each row gives the dilation)."""
+    h, w = marks.shape[0], marks.shape[1] - 1
+    r = (half_widths.size - 1) // 2
+    for dy in range(-r, r + 1):
+        yy = y + dy
+        if yy < 0 or yy >= h:
+            continue
+        hw = half_widths[dy + r]
+        marks[yy, max(start - hw, 0)] += 1
+        marks[yy, min(end + hw, w)] -= 1
+
+
+@kernel
+def _box_mask(ys, xs, n, r, hh, ww):  # pragma: no cover - compiled
+    """The pixels ``(ys, xs)[:n]`` as a 0/1 mask on their bounding box grown by ``r`` and clipped to
+    ``hh x ww``: ``(mask, y0, x0)``, the box's corner."""
+    y0, y1, x0, x1 = hh, -1, ww, -1
+    for i in range(n):
+        y0, y1 = min(y0, ys[i]), max(y1, ys[i])
+        x0, x1 = min(x0, xs[i]), max(x1, xs[i])
+    y0, x0 = max(y0 - r, 0), max(x0 - r, 0)
+    y1, x1 = min(y1 + r + 1, hh), min(x1 + r + 1, ww)
+    src = np.zeros((y1 - y0, x1 - x0), dtype=np.uint8)
+    for i in range(n):
+        src[ys[i] - y0, xs[i] - x0] = 1
+    return src, y0, x0
+
+
+@kernel
 def dilate_runs(mask, half_widths):  # pragma: no cover - compiled
     """Dilation of a 0/1 mask by a structuring element given as row spans (cv2.dilate with an ellipse).
 
@@ -415,14 +447,7 @@ def dilate_runs(mask, half_widths):  # pragma: no cover - compiled
             start = x
             while x < w and mask[y, x] != 0:
                 x += 1
-            end = x  # exclusive
-            for dy in range(-r, r + 1):
-                yy = y + dy
-                if yy < 0 or yy >= h:
-                    continue
-                hw = half_widths[dy + r]
-                marks[yy, max(start - hw, 0)] += 1
-                marks[yy, min(end + hw, w)] -= 1
+            _mark_run(marks, y, start, x, half_widths)
     out = np.empty((h, w), dtype=np.uint8)
     for y in range(h):
         acc = 0
@@ -957,16 +982,7 @@ def _fill_across(smooth, wy0, wx0, hh, ww, ox, oy, ax, ay, s0, s1, half_t, depth
 def _dilated_box(ys, xs, n, half_widths, hh, ww):  # pragma: no cover - compiled
     """The pixels ``(ys, xs)[:n]`` dilated by the row spans ``half_widths``, on their bounding box grown
     by the element's radius and clipped to ``hh x ww``: ``(mask, y0, x0)``."""
-    r = (half_widths.size - 1) // 2
-    y0, y1, x0, x1 = hh, -1, ww, -1
-    for i in range(n):
-        y0, y1 = min(y0, ys[i]), max(y1, ys[i])
-        x0, x1 = min(x0, xs[i]), max(x1, xs[i])
-    y0, x0 = max(y0 - r, 0), max(x0 - r, 0)
-    y1, x1 = min(y1 + r + 1, hh), min(x1 + r + 1, ww)
-    src = np.zeros((y1 - y0, x1 - x0), dtype=np.uint8)
-    for i in range(n):
-        src[ys[i] - y0, xs[i] - x0] = 1
+    src, y0, x0 = _box_mask(ys, xs, n, (half_widths.size - 1) // 2, hh, ww)
     return dilate_runs(src, half_widths), y0, x0
 
 
@@ -977,18 +993,9 @@ def _ring_values(ys, xs, n, outer_hw, inner_hw, hh, ww, smooth, wy0, wx0):  # pr
     themselves if that is one pixel wide), on the bounding box grown by the outer radius, in raster order;
     ``(values, count)``. The same pixels as :func:`_dilated_box` and :func:`dilate_runs` twice, in one pass:
     both dilations' marks from the same runs, one prefix sum over both."""
-    r = (outer_hw.size - 1) // 2
     g = (inner_hw.size - 1) // 2
-    y0, y1, x0, x1 = hh, -1, ww, -1
-    for i in range(n):
-        y0, y1 = min(y0, ys[i]), max(y1, ys[i])
-        x0, x1 = min(x0, xs[i]), max(x1, xs[i])
-    y0, x0 = max(y0 - r, 0), max(x0 - r, 0)
-    y1, x1 = min(y1 + r + 1, hh), min(x1 + r + 1, ww)
-    h, w = y1 - y0, x1 - x0
-    src = np.zeros((h, w), dtype=np.uint8)
-    for i in range(n):
-        src[ys[i] - y0, xs[i] - x0] = 1
+    src, y0, x0 = _box_mask(ys, xs, n, (outer_hw.size - 1) // 2, hh, ww)
+    h, w = src.shape
     marks_o = np.zeros((h, w + 1), dtype=np.int32)
     marks_i = np.zeros((h, w + 1), dtype=np.int32)
     for y in range(h):
@@ -1000,22 +1007,9 @@ def _ring_values(ys, xs, n, outer_hw, inner_hw, hh, ww, smooth, wy0, wx0):  # pr
             start = x
             while x < w and src[y, x] != 0:
                 x += 1
-            end = x  # exclusive
-            for dy in range(-r, r + 1):
-                yy = y + dy
-                if yy < 0 or yy >= h:
-                    continue
-                hw = outer_hw[dy + r]
-                marks_o[yy, max(start - hw, 0)] += 1
-                marks_o[yy, min(end + hw, w)] -= 1
+            _mark_run(marks_o, y, start, x, outer_hw)
             if g > 0:
-                for dy in range(-g, g + 1):
-                    yy = y + dy
-                    if yy < 0 or yy >= h:
-                        continue
-                    hw = inner_hw[dy + g]
-                    marks_i[yy, max(start - hw, 0)] += 1
-                    marks_i[yy, min(end + hw, w)] -= 1
+                _mark_run(marks_i, y, start, x, inner_hw)
     values = np.empty(h * w, dtype=np.float32)
     count = 0
     for y in range(h):
