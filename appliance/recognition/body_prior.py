@@ -74,11 +74,11 @@ class BodyModel:
 
     @functools.cached_property
     def packed(self) -> np.ndarray:
-        """The model as :func:`.body_kernels.place` takes it (its ``B_*`` layout; made once)."""
+        """The model as :func:`.body_kernels.place` takes it (its ``B_*`` layout; made once; writable, as
+        the warm-up compiled it: a read-only array would be another signature, compiled at its first frame)."""
         body = np.empty(bk.B_SIZE)
         body[bk.B_LENGTH], body[bk.B_CENTROID_FROM_TAIL] = self.length_mm, self.centroid_from_tail_mm
         body[bk.B_CONE], body[bk.B_DIAMETER] = self.cone_length_mm, self.diameter_mm
-        body.flags.writeable = False
         return body
 
 
