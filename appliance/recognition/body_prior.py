@@ -192,14 +192,15 @@ def place_body(calibration: Calibration, posture: Posture, body: BodyModel, sett
     numbers += (math.nan if measured is None else measured, axis_sigma_rad, settings.max_clutter,
                 1.0 if posture.head_identified else 0.0)
     # (copy.copy: dataclasses.replace re-runs __init__, a few us a frame)
-    return _apply(calibration, copy.copy(posture), body, numbers)
+    return _apply(calibration.packed, copy.copy(posture), body, numbers)
 
 
-def place_plain_body(calibration: Calibration, posture: Posture, body: BodyModel, settings: RecognitionSettings,
+def place_plain_body(packed: np.ndarray, posture: Posture, body: BodyModel, settings: RecognitionSettings,
                      track: tuple, clutter: tuple[float, float], axis_sigma_rad: float) -> Posture:
     """:func:`place_body` on a steady-state plain frame's fresh posture (:meth:`.SteadyPair.plain_posture`,
     not yet seen by anyone), placed in place: the same kernel on the same numbers, so the same posture to
     the last bit, without reading its deferred tips and views (they stay for the record to make).
+    ``packed``: the calibration's :attr:`.Calibration.packed` (the tracker holds it: not looked up again).
 
     ``track``: :attr:`.SteadyPair.plain_track` of the same call (the posture's centroid, direction and
     length, and per view its centroid and tips in pixels, the posture's order); ``clutter``: each view's
@@ -210,15 +211,15 @@ def place_plain_body(calibration: Calibration, posture: Posture, body: BodyModel
     (c, d, length, p, q) = track
     numbers = [*c, *d, 1.0, *p[:6], clutter[0], 0.0, 0.0, 1.0, *q[:6], clutter[1], 0.0, 0.0,
                length, axis_sigma_rad, settings.max_clutter, 1.0]
-    return _apply(calibration, posture, body, numbers)
+    return _apply(packed, posture, body, numbers)
 
 
-def _apply(calibration: Calibration, placed: Posture, body: BodyModel, numbers: list[float]) -> Posture:
+def _apply(packed: np.ndarray, placed: Posture, body: BodyModel, numbers: list[float]) -> Posture:
     """``placed`` (a posture no one else holds) updated by :func:`.body_kernels.place` on ``numbers`` (its
     ``inp``): the centroid and tips where the body placed them, the flag and its reason (made only on a
     flagged frame)."""
     out = np.empty(bk.OUT_SIZE)
-    bk.place(calibration.packed, np.array(numbers), body.packed, out)
+    bk.place(packed, np.array(numbers), body.packed, out)
     was_placed, flag = out[bk.OUT_PLACED:bk.OUT_FLAG + 1].tolist()
     if was_placed:
         placed.centroid_mm = out[bk.OUT_CENTROID:bk.OUT_CENTROID + 3]

@@ -165,7 +165,7 @@ class PostureTracker:
                     placed = None
                     if self.body is not None:
                         clutter, axis_sigma = pair.body_inputs()
-                        plain = place_plain_body(self.calibration, plain, self.body, self.settings, pair.plain_track,
+                        plain = place_plain_body(self._packed, plain, self.body, self.settings, pair.plain_track,
                                                  (clutter["p"], clutter["q"]), axis_sigma)
                         placed = plain.centroid_mm
                     timings["triangulation"] = (time.perf_counter_ns() - start) / 1e3
