@@ -17,8 +17,8 @@ vessel's remainder, are not paired). A frame where that fails too, or whose obje
 Where the views' head claims disagree and only one view overlaps another structure, the clean view's
 claim is taken (``_head_by_clean_view``; the reconstruction alone leaves such a head unidentified).
 A tracker given the robot's body (``body=``, with ``settings.body_prior``) places the centroid and tips
-of every ok posture by it (:func:`.body_prior.place_body`), on the plain frames' postures and the
-others' alike.
+of every ok posture by it (:func:`.body_prior.place_body`; on the plain frames' postures, in place,
+:func:`.body_prior.place_plain_body`: the same compiled arithmetic on the same numbers).
 """
 from __future__ import annotations
 
@@ -37,7 +37,7 @@ from appliance.geometry import (
     triangulate,
 )
 from appliance.geometry_kernels import project_segment
-from appliance.recognition.body_prior import BodyModel, end_clutter, place_body
+from appliance.recognition.body_prior import BodyModel, end_clutter, place_body, place_plain_body
 from appliance.recognition.correspondence import pair_candidates, pairing_rms
 from appliance.recognition.detection import detect
 from appliance.recognition.features import Features2D, features
@@ -164,7 +164,9 @@ class PostureTracker:
                     # A plain frame: the posture the decisions below make, built from the call's numbers.
                     placed = None
                     if self.body is not None:
-                        plain = place_body(self.calibration, plain, self.body, self.settings, *self._pair.body_inputs())
+                        clutter, axis_sigma = pair.body_inputs()
+                        plain = place_plain_body(self._packed, plain, self.body, self.settings, pair.plain_track,
+                                                 (clutter["p"], clutter["q"]), axis_sigma)
                         placed = plain.centroid_mm
                     timings["triangulation"] = (time.perf_counter_ns() - start) / 1e3
                     self._remember_plain(t, plain.direction, placed)

@@ -138,6 +138,37 @@ def test_most_tracked_frames_are_plain(views: dict[str, object], calibration: Ca
     assert plain >= 3
 
 
+def test_a_plain_frame_is_placed_without_making_its_deferred_tips_and_views(views: dict[str, object],
+                                                                             calibration: Calibration,
+                                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    # The body prior places a plain frame's fresh posture in place (body_prior.place_plain_body): its tips
+    # and views stay for the record to make, and when made they do not undo the placed tips.
+    spec = load_robots()[1]
+    body = RobotBody(spec.length_mm, spec.diameter_mm, spec.tip_angle_deg, spec.attenuation_per_mm)
+    renderer = BiplaneRenderer(views, body, settings=ImagingSettings(), seed=1)
+    tracker = PostureTracker(calibration, RecognitionSettings(dark_level=ImagingSettings().dark_level), body=spec)
+    objects = SteadyPair.objects
+    called = []
+    monkeypatch.setattr(SteadyPair, "objects", lambda self: called.append(1) or objects(self))
+    plain = 0
+    for n in range(6):
+        t = n / 30.0
+        pose = RobotPose(np.array((3.0, -4.0, 5.0)) + t * np.array((20.0, 10.0, -5.0)), np.array((0.3, 0.5, 0.81)))
+        pair = renderer.render(pose)
+        called.clear()
+        posture = tracker.process(pair.images["p"], pair.images["q"], frame=n, t=t)
+        if tracker.last_search != "roi" or called:
+            continue
+        plain += 1
+        assert "_rest" in posture.__dict__ and "views" not in posture.__dict__
+        placed = posture.tips_mm.copy()
+        assert posture.views["p"] is not None          # the rest made now ...
+        assert np.array_equal(posture.tips_mm, placed)  # ... keeps the placed tips
+        assert math.isclose(float(np.linalg.norm(placed[0] - placed[1])), spec.length_mm, rel_tol=1e-9)
+        assert not math.isclose(posture.length_mm, spec.length_mm, rel_tol=1e-9)   # the measured length stays
+    assert plain >= 3
+
+
 def test_pair_path_is_not_used_for_other_inputs(calibration: Calibration) -> None:
     pair = SteadyPair(calibration, RecognitionSettings())
     image = np.zeros((336, 384), dtype=np.uint16)

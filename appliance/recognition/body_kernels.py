@@ -1,0 +1,355 @@
+"""The compiled arithmetic of :func:`.body_prior.place_body`: the body's axial evidence, its combination,
+the consistency checks and the placed centroid and tips, in one kernel call (:func:`place`).
+
+The body prior runs on every ok posture, the steady state's plain frames included (issue 8): as Python
+(a dozen rays, sigmas and small lists per frame) it cost ~45 us a plain frame, most of a steady pair's
+Python. The method and its constants are :mod:`.body_prior`'s (its module docstring says why); this
+module holds only the numbers, in the order the Python it replaced computed them (``x ** 2`` as
+``x * x``, ``x ** 6`` as libm's ``pow``, Python's ``sum`` as a left-to-right sum). Both the general
+path and the plain frames place the body through it, so the two stay identical to the last bit.
+:mod:`.body_prior` keeps what needs Python objects: the postures and the reasons given to the operator.
+
+Input (``inp``, float64, the ``IN_*`` offsets): the posture's centroid and direction, per view whether it
+was observed, its centroid and tips (pixels, the posture's order), :attr:`.Blob.clutter` and its ends'
+:func:`.body_prior.end_clutter`, then the measured length (NaN if unknown), the axis sigma (rad),
+``settings.max_clutter`` and whether the head is identified. ``body`` (float64): the body's ``B_*`` numbers.
+Output (``out``, the ``OUT_*`` offsets).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from appliance.compiled import kernel, register_warm_up
+from appliance.geometry_kernels import _K, _SRC, VIEW_SIZE
+from appliance.recognition.reconstruction_kernels import _ray_line_b
+
+# The method's constants (see :mod:`.body_prior`'s docstring for the method).
+#: Noise (px along the image axis, on a clean view seen side-on) of the moment centroid and of a flat
+#: end's half-height crossing, and of a cone's apex (plus this fraction of the cone's image length: its
+#: ramp is extrapolated to the apex). Measured on the accuracy benchmark's clean frames (dev seeds 1-12,
+#: robots 1-7): tails 0.1-0.3 px RMS, apexes 0.4-1.2 px with heavy tails, 3D centroids 0.02-0.05 mm.
+CENTROID_SIGMA_PX = 0.2
+FLAT_END_SIGMA_PX = 0.2
+APEX_SIGMA_PX = 0.3
+APEX_SIGMA_PER_CONE_PX = 0.01
+#: An end face seen obliquely blurs its crossing by the rim: this fraction of the body's image width
+#: times cos^6 of the ray-axis angle (negligible until the view is nearly end-on; measured: tails
+#: 0.15-0.3 px RMS below cos 0.85, 0.4-1.8 px above).
+RIM_FRACTION = 0.1
+RIM_POWER = 6
+#: Over another structure, a sigma grows by this much per (clutter / max_clutter)^2: the centroid by its
+#: frame's worst view, an end by its own view's clutter, and (views over another structure) by this
+#: much per end_clutter / max_clutter more. On the dev seeds a cluttered view's tail was 0.2-0.4 mm off
+#: where the end's neighbourhood looked clean (the interpolated background slopes along the body), so
+#: the view's clutter counts for its ends too.
+CENTROID_CLUTTER_GAIN = 4.0
+VIEW_CLUTTER_GAIN = 4.0
+END_CLUTTER_GAIN = 4.0
+#: An apex estimate joins only if it lies within this many sigmas of the centroid's and tails' mean: the
+#: apex's errors have heavy tails (a faint cone lost to noise or run on into a vessel: 1-3 mm).
+APEX_GATE_SIGMAS = 3.0
+#: Where the body is placed, the centroid and the tails are inconsistent beyond this many sigmas (per degree
+#: of freedom, chi-square) of a clean frame's noise (the sigmas without the clutter terms; with them, a
+#: frame just under ``max_clutter`` whose moment centroid slid 0.8 mm passed as clean: dev seed 14, robot
+#: 6). On the dev seeds' frames not flagged otherwise it flagged 3 of 611, 2 of them > 0.15 mm off. The
+#: measured length is no such sign there: an apex off alone (flagged by it in 1 of 30 frames of robots 1
+#: and 5) is not used, and the frame is placed well.
+CORE_SIGMAS = 4.0
+#: Where the measured tips are kept (head not identified, order undecided), their length is implausible
+#: beyond this many sigmas of a clean frame's noise: an end is off (the apex measured as a flat end falls
+#: short by ~0.7 of the cone).
+LENGTH_SIGMAS = 4.0
+#: The ends' order is taken from the body's offset where one order fits the ends better by this much
+#: (chi-square), with the head not identified.
+ORDER_CHI2 = 25.0
+
+# ``inp``: centroid (3), direction (3), then per view IN_VIEW_SIZE numbers from IN_VIEW, then the tail.
+IN_CENTROID = 0
+IN_DIRECTION = 3
+IN_VIEW = 6
+V_PRESENT, V_CENTROID, V_TIPS, V_CLUTTER, V_ENDS = 0, 1, 3, 7, 8
+IN_VIEW_SIZE = 10
+IN_MEASURED = IN_VIEW + 2 * IN_VIEW_SIZE
+IN_AXIS_SIGMA = IN_MEASURED + 1
+IN_MAX_CLUTTER = IN_MEASURED + 2
+IN_HEAD_IDENTIFIED = IN_MEASURED + 3
+IN_SIZE = IN_MEASURED + 4
+
+# ``body``: the robot's length, centroid from the tail face, cone length, diameter.
+B_LENGTH, B_CENTROID_FROM_TAIL, B_CONE, B_DIAMETER = 0, 1, 2, 3
+B_SIZE = 4
+
+# ``out``: the placed centroid and tips (head first under the posture's order; valid where OUT_PLACED is
+# 1: otherwise the measured ones are kept), the flag (FLAG_*), for the disagreement the estimate at odds
+# (-1: the moment centroid, 0 / 1: view p's / q's tail) and how far it puts the body from the rest (mm),
+# for the length check the ends' noise (mm).
+OUT_CENTROID = 0
+OUT_TIPS = 3
+OUT_PLACED = 9
+OUT_FLAG = 10
+OUT_WHAT = 11
+OUT_OFF = 12
+OUT_NOISE = 13
+OUT_SIZE = 14
+FLAG_NONE, FLAG_DISAGREEMENT, FLAG_LENGTH = 0, 1, 2
+
+# One hypothesis' evidence (scratch rows of :func:`place`): counts, the ends' clean sigmas, then the core
+# estimates (the moment centroid, then each view's tail: b, sigma, clean sigma, which) and the apexes.
+_E_CORE_N, _E_APEX_N, _E_SIGMA_HEAD, _E_SIGMA_TAIL = 0, 1, 2, 3
+_E_CORE_B, _E_CORE_S, _E_CORE_C, _E_CORE_WHAT = 4, 7, 10, 13
+_E_APEX_B, _E_APEX_S = 16, 18
+_E_SIZE = 20
+
+
+@kernel
+def _end_sigma_mm(head: bool, cone: float, diameter: float, mm_per_px: float, sine: float,
+                  inflation: float) -> float:
+    """One view's end: its crossing's noise (px), the rim's, along the 3D axis (/ sine), inflated."""
+    cosine = math.sqrt(max(1.0 - sine * sine, 0.0))
+    rim = RIM_FRACTION * (diameter / mm_per_px) * math.pow(cosine, float(RIM_POWER))
+    if head and cone > 0:
+        base = APEX_SIGMA_PX + APEX_SIGMA_PER_CONE_PX * cone / mm_per_px
+    else:
+        base = FLAT_END_SIGMA_PX
+    return (base + rim) * mm_per_px / max(sine, 1e-3) * inflation
+
+
+@kernel
+def _evidence(G: np.ndarray, inp: np.ndarray, body: np.ndarray, head_end: int, e: np.ndarray) -> None:
+    """The axial evidence under ``head_end`` (which of the posture's tips is the head) into the row ``e``
+    (:func:`.body_prior.axial_evidence` of the method's description)."""
+    c = inp[IN_CENTROID:IN_CENTROID + 3]
+    u = inp[IN_DIRECTION:IN_DIRECTION + 3]
+    length, cft = body[B_LENGTH], body[B_CENTROID_FROM_TAIL]
+    cone, diameter, max_clutter = body[B_CONE], body[B_DIAMETER], inp[IN_MAX_CLUTTER]
+    axis_sigma = inp[IN_AXIS_SIGMA]
+    to_head = length - cft
+    sign = 1.0 if head_end == 0 else -1.0   # +1: the posture's direction points from the tail to the head
+    flat_tail = length - cone >= diameter
+    weight_head = 0.0
+    weight_tail = 0.0
+    sin2_sum, mm_sum, views = 0.0, 0.0, 0
+    worst = 0.0
+    n_core, n_apex = 1, 0   # the moment centroid's slot first
+    for view in range(2):
+        i = IN_VIEW + view * IN_VIEW_SIZE
+        if inp[i + V_PRESENT] == 0.0:
+            continue
+        o = view * VIEW_SIZE
+        _, sin2 = _ray_line_b(G, o, inp[i + V_CENTROID], inp[i + V_CENTROID + 1], c, u)
+        sine_c = math.sqrt(sin2)
+        w0, w1, w2 = G[o + _SRC] - c[0], G[o + _SRC + 1] - c[1], G[o + _SRC + 2] - c[2]
+        mm_per_px = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2) / G[o + _K]
+        sin2_sum += sine_c * sine_c
+        mm_sum += mm_per_px
+        views += 1
+        level = inp[i + V_CLUTTER]
+        worst = max(worst, level)
+        ratio = level / max_clutter
+        view_gain = 1.0 + VIEW_CLUTTER_GAIN * (ratio * ratio)
+        for end in range(2):
+            b, sin2 = _ray_line_b(G, o, inp[i + V_TIPS + 2 * end], inp[i + V_TIPS + 2 * end + 1], c, u)
+            sine = math.sqrt(sin2)
+            head = end == head_end
+            local = inp[i + V_ENDS + end]
+            inflation = view_gain + (END_CLUTTER_GAIN * local / max_clutter if math.isfinite(local) else 1e6)
+            tilt = abs(b) * axis_sigma * math.sqrt(max(1.0 - sine * sine, 0.0)) / max(sine, 1e-3)
+            sigma = math.hypot(_end_sigma_mm(head, cone, diameter, mm_per_px, sine, inflation), tilt)
+            clean = math.hypot(_end_sigma_mm(head, cone, diameter, mm_per_px, sine, 1.0), tilt)
+            if head:
+                weight_head += 1.0 / (clean * clean)
+                e[_E_APEX_B + n_apex] = b - sign * to_head
+                e[_E_APEX_S + n_apex] = sigma
+                n_apex += 1
+            else:
+                weight_tail += 1.0 / (clean * clean)
+                if flat_tail:
+                    e[_E_CORE_B + n_core] = b + sign * cft
+                    e[_E_CORE_S + n_core] = sigma
+                    e[_E_CORE_C + n_core] = clean
+                    e[_E_CORE_WHAT + n_core] = view
+                    n_core += 1
+    if views:
+        clean_c = CENTROID_SIGMA_PX * (mm_sum / views) / math.sqrt(max(sin2_sum, 1e-6))
+        ratio = worst / max_clutter
+        e[_E_CORE_B] = 0.0
+        e[_E_CORE_S] = clean_c * (1.0 + CENTROID_CLUTTER_GAIN * (ratio * ratio))
+        e[_E_CORE_C] = clean_c
+        e[_E_CORE_WHAT] = -1.0
+    else:
+        n_core = 0   # no view, no estimate (and no tail either)
+    e[_E_CORE_N] = n_core
+    e[_E_APEX_N] = n_apex
+    e[_E_SIGMA_HEAD] = 1.0 / math.sqrt(weight_head) if weight_head > 0 else math.inf
+    e[_E_SIGMA_TAIL] = 1.0 / math.sqrt(weight_tail) if weight_tail > 0 else math.inf
+
+
+@kernel
+def _combine(e: np.ndarray) -> tuple[float, float]:
+    """The inverse-variance mean of the core estimates and the apexes consistent with it (within
+    ``APEX_GATE_SIGMAS``): ``(b, chi-square)``.
+
+    Independent Gaussian measurements of one number: their inverse-variance mean is the
+    maximum-likelihood one, and its variance the smallest of any linear combination. The apexes are
+    gated because their errors are not Gaussian (a cone's faint apex lost or run on into a vessel)."""
+    n_core, n_apex = int(e[_E_CORE_N]), int(e[_E_APEX_N])
+    total = 0.0
+    for i in range(n_core):
+        s = e[_E_CORE_S + i]
+        total += 1.0 / (s * s)
+    num = 0.0
+    for i in range(n_core):
+        s = e[_E_CORE_S + i]
+        num += 1.0 / (s * s) * e[_E_CORE_B + i]
+    b = num / total
+    gated = np.zeros(2, dtype=np.bool_)
+    for j in range(n_apex):
+        s = e[_E_APEX_S + j]
+        gated[j] = abs(e[_E_APEX_B + j] - b) <= APEX_GATE_SIGMAS * math.sqrt(s * s + 1.0 / total)
+    total = 0.0
+    num = 0.0
+    for i in range(n_core):
+        s = e[_E_CORE_S + i]
+        total += 1.0 / (s * s)
+    for j in range(n_apex):
+        if gated[j]:
+            s = e[_E_APEX_S + j]
+            total += 1.0 / (s * s)
+    for i in range(n_core):
+        s = e[_E_CORE_S + i]
+        num += 1.0 / (s * s) * e[_E_CORE_B + i]
+    for j in range(n_apex):
+        if gated[j]:
+            s = e[_E_APEX_S + j]
+            num += 1.0 / (s * s) * e[_E_APEX_B + j]
+    b = num / total
+    chi2 = 0.0
+    for i in range(n_core):
+        s = e[_E_CORE_S + i]
+        d = e[_E_CORE_B + i] - b
+        chi2 += 1.0 / (s * s) * (d * d)
+    for j in range(n_apex):
+        if gated[j]:
+            s = e[_E_APEX_S + j]
+            d = e[_E_APEX_B + j] - b
+            chi2 += 1.0 / (s * s) * (d * d)
+    return b, chi2
+
+
+@kernel
+def _disagreement(e: np.ndarray) -> tuple[float, int, int, float]:
+    """How far the core estimates disagree by a clean frame's noise: the chi-square of their inverse-variance
+    mean with the clean sigmas, its degrees of freedom, which estimate is most at odds with it (``OUT_WHAT``'s
+    code) and how far (mm) it puts the body from where the others do."""
+    n = int(e[_E_CORE_N])
+    total = 0.0
+    for i in range(n):
+        s = e[_E_CORE_C + i]
+        total += 1.0 / (s * s)
+    num = 0.0
+    for i in range(n):
+        s = e[_E_CORE_C + i]
+        num += 1.0 / (s * s) * e[_E_CORE_B + i]
+    b = num / total
+    chi2 = 0.0
+    k, worst = 0, -math.inf
+    for i in range(n):
+        s = e[_E_CORE_C + i]
+        d = e[_E_CORE_B + i] - b
+        term = 1.0 / (s * s) * (d * d)
+        chi2 += term
+        if term > worst:   # the first of equal terms, as Python's max
+            k, worst = i, term
+    s = e[_E_CORE_C + k]
+    wk = 1.0 / (s * s)
+    others = total - wk
+    rest = (b * total - wk * e[_E_CORE_B + k]) / others if others > 0 else b
+    return chi2, n - 1, int(e[_E_CORE_WHAT + k]), e[_E_CORE_B + k] - rest
+
+
+@kernel
+def place(G: np.ndarray, inp: np.ndarray, body: np.ndarray, out: np.ndarray) -> None:
+    """The body placed on the posture's axis, and the checks' verdict, into ``out`` (see the module
+    docstring and :func:`.body_prior.place_body`)."""
+    c = inp[IN_CENTROID:IN_CENTROID + 3]
+    u = inp[IN_DIRECTION:IN_DIRECTION + 3]
+    length, cft = body[B_LENGTH], body[B_CENTROID_FROM_TAIL]
+    rows = np.empty((2, _E_SIZE))
+    chosen = 0
+    if inp[IN_HEAD_IDENTIFIED] != 0.0:
+        _evidence(G, inp, body, 0, rows[0])
+        b, _ = _combine(rows[0])
+        placed = True
+        for i in range(3):
+            centroid = c[i] + b * u[i]
+            tail = centroid - cft * u[i]
+            out[OUT_CENTROID + i] = centroid
+            out[OUT_TIPS + i] = tail + length * u[i]
+            out[OUT_TIPS + 3 + i] = tail
+    else:
+        # Each order of the tips is a hypothesis; the ends choose only where one fits decisively better.
+        _evidence(G, inp, body, 0, rows[0])
+        b0, chi0 = _combine(rows[0])
+        _evidence(G, inp, body, 1, rows[1])
+        b1, chi1 = _combine(rows[1])
+        chosen = 1 if chi1 < chi0 else 0   # a stable sort by chi-square
+        b, chi2, other = (b1, chi1, chi0) if chosen == 1 else (b0, chi0, chi1)
+        placed = rows[chosen, _E_CORE_N] > 1 and other - chi2 >= ORDER_CHI2
+        if placed:
+            sign = 1.0 if chosen == 0 else -1.0   # +u points to the head under this order
+            first = 0 if chosen == 0 else 3   # where the head goes among the tips
+            for i in range(3):
+                centroid = c[i] + b * u[i]
+                tail = centroid - sign * cft * u[i]
+                out[OUT_CENTROID + i] = centroid
+                out[OUT_TIPS + first + i] = tail + sign * length * u[i]
+                out[OUT_TIPS + 3 - first + i] = tail
+        else:
+            out[OUT_CENTROID:OUT_PLACED] = math.nan
+    e = rows[chosen]
+    out[OUT_PLACED] = 1.0 if placed else 0.0
+    out[OUT_FLAG] = FLAG_NONE
+    out[OUT_WHAT] = math.nan
+    out[OUT_OFF] = math.nan
+    out[OUT_NOISE] = math.nan
+    measured = inp[IN_MEASURED]
+    if placed:
+        # Placed by the centroid and the tails: where they disagree beyond a clean frame's noise, one is off.
+        chi2, dof, what, off = _disagreement(e)
+        if dof > 0 and chi2 > CORE_SIGMAS ** 2 * dof:
+            out[OUT_FLAG] = FLAG_DISAGREEMENT
+            out[OUT_WHAT] = what
+            out[OUT_OFF] = off
+    elif math.isfinite(measured):
+        # The measured tips are kept: a length off the body's beyond their noise means they are off.
+        noise = math.hypot(e[_E_SIGMA_HEAD], e[_E_SIGMA_TAIL])
+        out[OUT_NOISE] = noise
+        if abs(measured - length) > LENGTH_SIGMAS * noise:
+            out[OUT_FLAG] = FLAG_LENGTH
+
+
+def warm_up() -> None:
+    """Compile the kernel on a tiny biplane geometry, with the head identified and not."""
+    from appliance.geometry_kernels import pack_view, pack_views
+
+    K = np.array([[1000.0, 0.0, 256.0], [0.0, 1000.0, 256.0], [0.0, 0.0, 1.0]])
+    turn = np.array([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
+    views = [pack_view(K, np.linalg.inv(K), R, np.array([0.0, 0.0, 500.0]), np.zeros(5)) for R in (np.eye(3), turn)]
+    G = pack_views(views[0], views[1], np.ones((3, 3)) / 3.0, 500.0)
+    inp = np.zeros(IN_SIZE)
+    inp[IN_DIRECTION] = 1.0
+    for view in range(2):
+        i = IN_VIEW + view * IN_VIEW_SIZE
+        inp[i:i + 7] = (1.0, 256.0, 256.0, 266.0, 256.0, 246.0, 256.0)
+    inp[IN_MEASURED] = 2.0
+    inp[IN_MAX_CLUTTER] = 0.1
+    body = np.array([2.0, 0.9, 0.5, 0.5])
+    out = np.empty(OUT_SIZE)
+    for head_identified in (1.0, 0.0):
+        inp[IN_HEAD_IDENTIFIED] = head_identified
+        place(G, inp, body, out)
+
+
+register_warm_up(__name__)
