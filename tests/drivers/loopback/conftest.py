@@ -22,7 +22,10 @@ def child_outlives_no_parent(tmp_path: Path) -> Callable[[str, str, str], None]:
 
     def check(start: str, how: str, what: str) -> None:
         script = tmp_path / "parent.py"
-        prelude = f"import sys, time\nsys.path[:0] = {sys.path!r}\n"
+        # The parent takes Ctrl-C as a program started from a terminal does, whatever this test run inherited:
+        # a runner started as a background job (no job control) hands its children SIGINT ignored.
+        prelude = (f"import signal, sys, time\nsignal.signal(signal.SIGINT, signal.default_int_handler)\n"
+                   f"sys.path[:0] = {sys.path!r}\n")
         script.write_text(prelude + textwrap.dedent(start) + textwrap.dedent("""
             try:
                 print(device.process.pid, device.shm_path, flush=True)
