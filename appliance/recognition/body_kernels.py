@@ -8,6 +8,9 @@ module holds only the numbers, in the order the Python it replaced computed them
 ``x * x``, ``x ** 6`` as libm's ``pow``, Python's ``sum`` as a left-to-right sum). Both the general
 path and the plain frames place the body through it, so the two stay identical to the last bit.
 :mod:`.body_prior` keeps what needs Python objects: the postures and the reasons given to the operator.
+:func:`end_spread` is :func:`.body_prior.end_clutter`'s pixel work on a view over another structure (its
+end's neighbourhood off the body and its 5-95 % range: as numpy masks, a dilation and ``np.percentile``
+~120 us an end, on every cluttered frame).
 
 Input (``inp``, float64, the ``IN_*`` offsets): the posture's centroid and direction, per view whether it
 was observed, its centroid and tips (pixels, the posture's order), :attr:`.Blob.clutter` and its ends'
