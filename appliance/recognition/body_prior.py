@@ -91,7 +91,8 @@ _RIM_PX = 3
 
 
 def end_clutter(image: np.ndarray, log_bg: LogBackground | np.ndarray, blob: Blob, centroid_px: np.ndarray,
-                tips_px: np.ndarray, settings: RecognitionSettings) -> tuple[float, float]:
+                tips_px: np.ndarray, settings: RecognitionSettings,
+                which: tuple[bool, bool] = (True, True)) -> tuple[float, float]:
     """Per end (the order of ``tips_px``), how much structure the attenuation around it shows, as a
     fraction of the body's peak: the 5-95 % range of the 3 x 3-averaged attenuation beside and beyond
     the end, off the body, less what the noise alone spreads it by.
@@ -100,15 +101,25 @@ def end_clutter(image: np.ndarray, log_bg: LogBackground | np.ndarray, blob: Blo
     the body's middle or one end, only the ends it reaches have their axial profile's edge moved by
     the background interpolated under it. The neighbourhood is what that interpolation reads near the
     end: out to the support's rim and the rows beyond it (``_END_REACH_PX``), along the body from
-    ``width`` before the end to beyond it.
+    ``width`` before the end to beyond it, less the body's support grown by ``_RIM_PX`` (its blurred rim).
+
+    ``which``: the ends to measure (:func:`ends_used`: :func:`place_body` reads only those); an end not
+    measured is NaN. The neighbourhood, the body's pixels and the percentiles are one compiled call per end
+    (:func:`.body_kernels.end_spread`; as numpy masks, a dilation and ``np.percentile`` it cost ~120 us an
+    end, issue 8); the attenuation and its 3 x 3 mean (``cv2.blur``) are as before.
     """
     half = 0.5 * blob.width_px
     reach = half + _END_REACH_PX
+    behind = 2.0 * half + _END_REACH_PX
     (cu, cv) = (float(centroid_px[0]), float(centroid_px[1]))
     out = []
     h, w = image.shape
-    for tip in np.asarray(tips_px, dtype=np.float64):
-        tu, tv = float(tip[0]), float(tip[1])
+    win = blob.window
+    for wanted, tip in zip(which, np.asarray(tips_px, dtype=np.float64).tolist()):
+        if not wanted:
+            out.append(math.nan)
+            continue
+        tu, tv = tip
         au, av = tu - cu, tv - cv
         norm = math.hypot(au, av)
         if not norm > 0:
@@ -123,37 +134,32 @@ def end_clutter(image: np.ndarray, log_bg: LogBackground | np.ndarray, blob: Blo
         a = attenuation(image, log_bg, Roi(x0, y0, x1, y1), settings.dark_level)
         # 3 x 3 box mean: the structure, not the pixel noise (which it divides by 3).
         a = cv2.blur(a, (3, 3))[1:-1, 1:-1]
-        ys, xs = np.mgrid[y0 + 1:y1 - 1, x0 + 1:x1 - 1]
-        gs = (xs - tu) * au + (ys - tv) * av           # outward along the axis from the tip
-        gt = np.abs(-(xs - tu) * av + (ys - tv) * au)   # across it
-        near = (~_body_pixels(blob, x0 + 1, y0 + 1, x1 - 1, y1 - 1)) & (gs >= -(2.0 * half + _END_REACH_PX)) \
-            & (gs <= reach) & (gt <= reach)
-        values = a[near]
-        if values.size < 16:
+        spread, count = bk.end_spread(a, x0 + 1, y0 + 1, tu, tv, au, av, behind, reach, blob.weights,
+                                      win.x0, win.y0, _RIM_DISK)
+        if count < 16:
             out.append(math.inf)
             continue
-        lo, hi = np.percentile(values, (5.0, 95.0))
         noise = 3.29 * blob.sigma / 3.0
-        out.append(max(float(hi - lo) - noise, 0.0) / max(blob.peak, 1e-6))
+        out.append(max(spread - noise, 0.0) / max(blob.peak, 1e-6))
     return out[0], out[1]
 
 
-def _body_pixels(blob: Blob, x0: int, y0: int, x1: int, y1: int) -> np.ndarray:
-    """Which pixels of the image rectangle ``x0:x1, y0:y1`` are the body's weighted support (its
-    weights' non-zero pixels, which reach ``support_dilate_px`` beyond the segmented body) grown by
-    ``_RIM_PX``: the body and its blurred rim, left out of an end's neighbourhood."""
-    grow = _RIM_PX
-    inside = np.zeros((y1 - y0 + 2 * grow, x1 - x0 + 2 * grow), dtype=np.uint8)
-    win = blob.window
-    wy0, wx0 = win.y0 - (y0 - grow), win.x0 - (x0 - grow)
-    h, w = blob.weights.shape
-    sy0, sx0 = max(wy0, 0), max(wx0, 0)
-    sy1, sx1 = min(wy0 + h, inside.shape[0]), min(wx0 + w, inside.shape[1])
-    if sy1 > sy0 and sx1 > sx0:
-        inside[sy0:sy1, sx0:sx1] = blob.weights[sy0 - wy0:sy1 - wy0, sx0 - wx0:sx1 - wx0] != 0
-    size = 2 * grow + 1
-    grown = cv2.dilate(inside, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size)))
-    return grown[grow:grow + (y1 - y0), grow:grow + (x1 - x0)].astype(bool)
+#: The body's rim grown by ``_RIM_PX``: cv2's elliptic structuring element, as the dilation used it.
+_RIM_DISK = np.ascontiguousarray(cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * _RIM_PX + 1, 2 * _RIM_PX + 1)),
+                                 dtype=np.uint8)
+
+
+def ends_used(posture: Posture, body: BodyModel, settings: RecognitionSettings) -> tuple[bool, bool] | None:
+    """Which ends' :func:`end_clutter` :func:`place_body` would read for ``posture`` (the order of its tips),
+    or None for neither: it returns a posture it does not place as it is, and with the head identified a
+    tail that is not flat (a body shorter than its cone and diameter) gives no estimate, so its sigma,
+    the only thing the end's clutter changes, is not used (:func:`.body_kernels._evidence`)."""
+    if (not posture.ok or posture.direction is None or posture.tips_mm is None or posture.centroid_mm is None
+            or settings.estimator == "paper"):
+        return None
+    if posture.head_identified and not body.length_mm - body.cone_length_mm >= body.diameter_mm:
+        return (True, False)
+    return (True, True)
 
 
 # ------------------------------------------------------------------------------------------ placement

@@ -37,7 +37,7 @@ from appliance.geometry import (
     triangulate,
 )
 from appliance.geometry_kernels import project_segment
-from appliance.recognition.body_prior import BodyModel, end_clutter, place_body, place_plain_body
+from appliance.recognition.body_prior import BodyModel, end_clutter, ends_used, place_body, place_plain_body
 from appliance.recognition.correspondence import pair_candidates, pairing_rms
 from appliance.recognition.detection import detect
 from appliance.recognition.features import Features2D, features
@@ -522,11 +522,12 @@ class PostureTracker:
         shows."""
         clutter = {name: blob.clutter for name, blob in blobs.items()}
         ends = {}
+        which = ends_used(posture, self.body, self.settings)   # (the ends whose clutter can change the placement)
         for name, blob in blobs.items():
-            view = posture.views.get(name)
+            view = posture.views.get(name) if which is not None else None
             if blob.clutter > self.settings.max_clutter and view is not None and name in self._log_bg:
                 ends[name] = end_clutter(images[name], self._log_bg[name], blob, view.centroid_px, view.tips_px,
-                                         self.settings)
+                                         self.settings, which)
         return place_body(self.calibration, posture, self.body, self.settings, clutter, rec.axis_sigma_rad or 0.0,
                           ends)
 
