@@ -16,6 +16,8 @@ vessel's remainder, are not paired). A frame where that fails too, or whose obje
 (:mod:`.plausibility`), is reported lost (``ok: false`` with a reason), never with a made-up pose.
 Where the views' head claims disagree and only one view overlaps another structure, the clean view's
 claim is taken (``_head_by_clean_view``; the reconstruction alone leaves such a head unidentified).
+A head claimed by one view alone, over another structure, whose profiles' evidence is weak
+(:func:`head_claim_confidence`) is withheld (``_head_in_doubt``): a wrong claim swaps the tips.
 A tracker given the robot's body (``body=``, with ``settings.body_prior``) places the centroid and tips
 of every ok posture by it (:func:`.body_prior.place_body`; on the plain frames' postures, in place,
 :func:`.body_prior.place_plain_body`: the same compiled arithmetic on the same numbers).
@@ -96,6 +98,27 @@ class _Track:
 #: While tracking, a view's noise sigma is measured on one ROI and reused for the next frames (same
 #: detector, same dose); measured again every this many frames so that a change of dose is followed.
 NOISE_REMEASURE_FRAMES = 30
+
+
+def head_claim_confidence(views: dict[str, tuple[Features2D, float, int | None]], floor_px: float) -> float:
+    """How strongly the views' axial profiles say the claimed end is the head: per view, the ramp at the
+    claimed end less the one at the other end, in units of ``floor_px`` plus the view's clutter times its
+    longer ramp, summed over the views (a view leaning the other way subtracts).
+
+    ``views`` maps a view to (its features, its :attr:`.Blob.clutter`, the claimed end's 2D index). The
+    background under a body over another structure slopes along it by about the clutter fraction of the
+    body's contrast, so a level crossing on a ramp moves by about that fraction of the ramp's length; a
+    clean view's ramps are uncertain by the blur and the crossings' interpolation (``floor_px``). A view
+    that claims no head still leans one way, and on a foreshortened or small image that lean is weak
+    evidence that counts here (a wrong claim over a vessel had the clean view leaning the other way).
+    """
+    total = 0.0
+    for feat, clutter, head in views.values():
+        if head is None:
+            continue
+        at_head, other = feat.ramp_px[head], feat.ramp_px[1 - head]
+        total += (at_head - other) / (floor_px + max(clutter, 0.0) * max(at_head, other))
+    return total
 
 
 class PostureTracker:
@@ -193,6 +216,7 @@ class PostureTracker:
             else:
                 rec = reconstruct(self.calibration, self.F, feats["p"], feats["q"], self.settings, previous)
             rec = self._head_by_clean_view(rec, blobs, feats, previous)
+            rec = self._head_in_doubt(rec, blobs, feats)
         except ValueError as err:
             self._lose()
             posture = Posture.lost(frame, t, f"reconstruction failed: {err}")
@@ -483,6 +507,33 @@ class PostureTracker:
         redone.reasons.append(f"the head is view {clean}'s: view {cluttered[0]}, over another structure, "
                               f"saw it at the other end")
         return redone
+
+    def _head_in_doubt(self, rec: Reconstruction, blobs: dict[str, Blob],
+                       feats: dict[str, Features2D]) -> Reconstruction:
+        """The head claim withheld where it rests on one view over another structure and its confidence
+        (:func:`head_claim_confidence`) is below ``settings.head_claim_min_confidence``.
+
+        A wrong claim swaps the tips (a body length of tip error); an unidentified head leaves both
+        orders open, and the tips keep what the reconstruction measured (the end claimed keeps its
+        cone-model tip, as the reconstruction's own demotion does). Claims by a clean view, or by both
+        views, are left alone, so a plain frame (no clutter, :mod:`.steady_state`) never reaches this.
+        """
+        if not rec.head_identified or self.settings.estimator == "paper" or not rec.view_features:
+            return rec
+        voters = [name for name in VIEWS if feats[name].head_index is not None]
+        if len(voters) != 1 or not blobs[voters[0]].clutter > self.settings.max_clutter:
+            return rec
+        confidence = head_claim_confidence(
+            {name: (feats[name], blobs[name].clutter, rec.view_features[name].head_index) for name in VIEWS},
+            self.settings.head_ramp_floor_px)
+        if confidence >= self.settings.head_claim_min_confidence:
+            return rec
+        final = {name: replace(feat, head_index=None) for name, feat in rec.view_features.items()}
+        reasons = rec.reasons + [f"the head is not claimed: only view {voters[0]}, over another structure, sees it, "
+                                 f"and the evidence is weak ({confidence:.2f} of the "
+                                 f"{self.settings.head_claim_min_confidence:g} needed, the other view's ramps "
+                                 f"included)"]
+        return replace(rec, head_identified=False, view_features=final, reasons=reasons)
 
     # ------------------------------------------------------------------------------------ results
     def _posture(self, frame: int, t: float, rec: Reconstruction, blobs: dict[str, Blob]) -> Posture:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -14,6 +15,7 @@ from appliance.geometry import Calibration, View
 from appliance.recognition import PostureTracker, RecognitionSettings, detect, log_background
 from appliance.recognition.features import Features2D
 from appliance.recognition.reconstruction import reconstruct
+from appliance.recognition.tracker import head_claim_confidence
 from appliance.recognition.segmentation import Blob, Roi
 from drivers.loopback.xray_render import (
     BiplaneRenderer,
@@ -273,3 +275,44 @@ def test_the_clean_view_tells_the_head_when_a_cluttered_view_disagrees(
     assert rec.head_identified
     assert float(np.dot(rec.direction, direction)) == pytest.approx(expected, abs=1e-3)
     assert any("the head is view" in reason for reason in rec.reasons)
+
+
+def test_head_claim_confidence_counts_both_views_and_is_lowered_by_clutter() -> None:
+    def feat(ramps: tuple[float, float]) -> Features2D:
+        return Features2D(np.zeros(2), np.array([1.0, 0.0]), (10.0, 1.0), np.zeros((2, 2)), 50, None, ramps)
+
+    claim = {"p": (feat((8.0, 2.0)), 0.0, 0), "q": (feat((3.0, 3.0)), 0.0, 0)}
+    clean = head_claim_confidence(claim, 0.5)
+    assert clean == pytest.approx(6.0 / 0.5)
+    cluttered = head_claim_confidence({**claim, "p": (feat((8.0, 2.0)), 0.3, 0)}, 0.5)
+    assert cluttered == pytest.approx(6.0 / (0.5 + 0.3 * 8.0))
+    # The other view's profile leaning towards the other end takes confidence away.
+    against = head_claim_confidence({**claim, "q": (feat((3.0, 4.0)), 0.0, 0)}, 0.5)
+    assert against == pytest.approx(clean - 2.0)
+
+
+@pytest.mark.parametrize("clutter_p, ramps_p, ramps_q, withheld", [
+    (0.3, (8.0, 5.0), (2.7, 3.9), True),     # weak, over a vessel, the clean view leaning the other way
+    (0.3, (20.0, 2.5), (3.0, 3.2), False),   # a clear cone and step over the vessel, the other view level
+    (0.0, (8.0, 5.0), (2.7, 3.9), False),    # a clean view's claim is not this rule's to withhold
+])
+def test_a_weak_head_claim_by_one_cluttered_view_is_withheld(
+        scene: tuple[Calibration, BiplaneRenderer], clutter_p: float, ramps_p: tuple[float, float],
+        ramps_q: tuple[float, float], withheld: bool) -> None:
+    calibration, _ = scene
+    tracker = PostureTracker(calibration)
+    direction = np.array([0.6, 0.3, 0.74])
+    direction /= np.linalg.norm(direction)
+    feats = _rod_features(calibration, np.array([2.0, -1.0, 3.0]), direction, 10.0, {"p": True, "q": True})
+    feats = {"p": replace(feats["p"], ramp_px=ramps_p), "q": replace(feats["q"], ramp_px=ramps_q, head_index=None)}
+    blobs = {"p": _blob(7.0, clutter_p), "q": _blob(7.0, 0.0)}
+    first = reconstruct(calibration, tracker.F, feats["p"], feats["q"], tracker.settings)
+    assert first.head_identified
+    rec = tracker._head_in_doubt(first, blobs, feats)
+    if not withheld:
+        assert rec is first
+        return
+    assert not rec.head_identified
+    assert all(feat.head_index is None for feat in rec.view_features.values())
+    assert np.array_equal(rec.tips, first.tips) and np.array_equal(rec.direction, first.direction)
+    assert any("the head is not claimed: only view p" in reason for reason in rec.reasons)
