@@ -397,6 +397,19 @@ def candidates(a, g, detect_sigma, smooth_gain, floor, known_sigma):  # pragma: 
 
 # ----------------------------------------------------------------------------------- binary morphology
 @kernel
+def _next_run(mask, y, x):  # pragma: no cover - compiled
+    """The first run of set pixels in row ``y`` of ``mask`` at or after column ``x``: ``(start, end)``,
+    ``end`` exclusive; ``(w, w)`` where there is none."""
+    w = mask.shape[1]
+    while x < w and mask[y, x] == 0:
+        x += 1
+    start = x
+    while x < w and mask[y, x] != 0:
+        x += 1
+    return start, x
+
+
+@kernel
 def _mark_run(marks, y, start, end, half_widths):  # pragma: no cover - compiled
     """Of a dilation by row spans (:func:`dilate_runs`): the run ``[start, end)`` of set pixels in row ``y``
     marks, in every row ``dy`` away, the run grown by ``half_widths[r + dy]``, as a +1 where it starts
@@ -439,15 +452,10 @@ def dilate_runs(mask, half_widths):  # pragma: no cover - compiled
     r = (half_widths.size - 1) // 2
     marks = np.zeros((h, w + 1), dtype=np.int32)
     for y in range(h):
-        x = 0
-        while x < w:
-            if mask[y, x] == 0:
-                x += 1
-                continue
-            start = x
-            while x < w and mask[y, x] != 0:
-                x += 1
-            _mark_run(marks, y, start, x, half_widths)
+        start, end = _next_run(mask, y, 0)
+        while start < w:
+            _mark_run(marks, y, start, end, half_widths)
+            start, end = _next_run(mask, y, end)
     out = np.empty((h, w), dtype=np.uint8)
     for y in range(h):
         acc = 0
@@ -999,17 +1007,12 @@ def _ring_values(ys, xs, n, outer_hw, inner_hw, hh, ww, smooth, wy0, wx0):  # pr
     marks_o = np.zeros((h, w + 1), dtype=np.int32)
     marks_i = np.zeros((h, w + 1), dtype=np.int32)
     for y in range(h):
-        x = 0
-        while x < w:
-            if src[y, x] == 0:
-                x += 1
-                continue
-            start = x
-            while x < w and src[y, x] != 0:
-                x += 1
-            _mark_run(marks_o, y, start, x, outer_hw)
+        start, end = _next_run(src, y, 0)
+        while start < w:
+            _mark_run(marks_o, y, start, end, outer_hw)
             if g > 0:
-                _mark_run(marks_i, y, start, x, inner_hw)
+                _mark_run(marks_i, y, start, end, inner_hw)
+            start, end = _next_run(src, y, end)
     values = np.empty(h * w, dtype=np.float32)
     count = 0
     for y in range(h):
