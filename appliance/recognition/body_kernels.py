@@ -190,6 +190,21 @@ def _evidence(G: np.ndarray, inp: np.ndarray, body: np.ndarray, head_end: int, e
 
 
 @kernel
+def _core_mean(e: np.ndarray, n: int, sigmas: int) -> tuple[float, float]:
+    """The inverse-variance mean of the ``n`` core estimates (``e[_E_CORE_B:]``) with the sigmas at
+    ``e[sigmas:]`` (the frame's, or a clean frame's): ``(mean, sum of the weights)``."""
+    total = 0.0
+    for i in range(n):
+        s = e[sigmas + i]
+        total += 1.0 / (s * s)
+    num = 0.0
+    for i in range(n):
+        s = e[sigmas + i]
+        num += 1.0 / (s * s) * e[_E_CORE_B + i]
+    return num / total, total
+
+
+@kernel
 def _combine(e: np.ndarray) -> tuple[float, float]:
     """The inverse-variance mean of the core estimates and the apexes consistent with it (within
     ``APEX_GATE_SIGMAS``): ``(b, chi-square)``.
@@ -198,15 +213,7 @@ def _combine(e: np.ndarray) -> tuple[float, float]:
     maximum-likelihood one, and its variance the smallest of any linear combination. The apexes are
     gated because their errors are not Gaussian (a cone's faint apex lost or run on into a vessel)."""
     n_core, n_apex = int(e[_E_CORE_N]), int(e[_E_APEX_N])
-    total = 0.0
-    for i in range(n_core):
-        s = e[_E_CORE_S + i]
-        total += 1.0 / (s * s)
-    num = 0.0
-    for i in range(n_core):
-        s = e[_E_CORE_S + i]
-        num += 1.0 / (s * s) * e[_E_CORE_B + i]
-    b = num / total
+    b, total = _core_mean(e, n_core, _E_CORE_S)
     gated = np.zeros(2, dtype=np.bool_)
     for j in range(n_apex):
         s = e[_E_APEX_S + j]
@@ -247,15 +254,7 @@ def _disagreement(e: np.ndarray) -> tuple[float, int, int, float]:
     mean with the clean sigmas, its degrees of freedom, which estimate is most at odds with it (``OUT_WHAT``'s
     code) and how far (mm) it puts the body from where the others do."""
     n = int(e[_E_CORE_N])
-    total = 0.0
-    for i in range(n):
-        s = e[_E_CORE_C + i]
-        total += 1.0 / (s * s)
-    num = 0.0
-    for i in range(n):
-        s = e[_E_CORE_C + i]
-        num += 1.0 / (s * s) * e[_E_CORE_B + i]
-    b = num / total
+    b, total = _core_mean(e, n, _E_CORE_C)
     chi2 = 0.0
     k, worst = 0, -math.inf
     for i in range(n):
