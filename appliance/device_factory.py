@@ -146,6 +146,12 @@ def _amplifier_fake_config(device: AmplifierDevice, coils: Any) -> Any:
         thermal_resistance_k_per_w=device.thermal_resistance_k_per_w)
 
 
+def _served(fake: Any, link: str, clock: SimClock) -> Any:
+    from drivers.loopback.serve import PtyServer, TcpServer
+
+    return TcpServer(fake, clock=clock) if link == "tcp" else PtyServer(fake, clock=clock)
+
+
 def _server_url(server: Any, link: str) -> str:
     return server.path if link == "pty" else server.address
 
@@ -280,7 +286,7 @@ def _open_simulation(session: Session, robot: RobotSpec, coils: Any, stack: cont
         amp_url, ots_url = lab.amplifier_url, lab.ots_url
     else:
         from drivers.loopback.amplifier_fake import FakeAmplifier
-        from drivers.loopback.lab import LoopbackLab, served
+        from drivers.loopback.lab import LoopbackLab
 
         if separate_renderer:
             from drivers.loopback.render_process import RenderProcess
@@ -289,7 +295,7 @@ def _open_simulation(session: Session, robot: RobotSpec, coils: Any, stack: cont
             renderer = RenderProcess(renderer)
             stack.callback(renderer.close)
         fake = FakeAmplifier(amp_config)
-        server = served(fake, amp_device.link, clock)
+        server = _served(fake, amp_device.link, clock)
         stack.callback(server.close)
         # The servers are closed by the stack (each once: a pty's descriptors must not be closed twice).
         lab = LoopbackLab(clock, world, fake, server, sim.substep_ms / 1000.0, renderer=renderer)
@@ -298,7 +304,7 @@ def _open_simulation(session: Session, robot: RobotSpec, coils: Any, stack: cont
             from drivers.loopback.ots_fake import NdiTrackerFake, NoiseModel
 
             ots_fake = NdiTrackerFake(lab.tool_poses, noise=NoiseModel(seed=sim.seed))
-            ots_server = served(ots_fake, ots_device.link, clock, background=True)
+            ots_server = _served(ots_fake, ots_device.link, clock)
             stack.callback(ots_server.close)
             lab.attach_tracker(ots_fake, ots_server)
             ots_url = _server_url(ots_server, ots_device.link)

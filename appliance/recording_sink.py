@@ -26,7 +26,6 @@ import numpy as np
 from mcap.writer import CompressionType, Writer
 
 from appliance import recording_schemas as rs
-from drivers.scheduling import run_in_background
 
 log = logging.getLogger(__name__)
 
@@ -175,8 +174,6 @@ class BackgroundWriter:
             raise self.error
 
     def _run(self) -> None:
-        # Background work that keeps its share (the loop waits for it when it falls max_lag_frames behind).
-        run_in_background(f"the recorder ({self._sink.path.name})")
         while True:
             with self._cond:
                 self._cond.wait_for(lambda: bool(self._queue))

@@ -19,7 +19,6 @@ from typing import Any
 import numpy as np
 
 from drivers.errors import DeviceError
-from drivers.scheduling import run_in_background
 from drivers.frame_source import FrameSource
 
 log = logging.getLogger(__name__)
@@ -205,8 +204,6 @@ class SimBench:
         stop = threading.Event()
 
         def run() -> None:
-            # The simulated world is another machine's work (its steps run in the lab's process, this thread waits).
-            run_in_background("the simulated world's real-time stepping")
             last = time.monotonic()
             while not stop.wait(period_s):
                 now = time.monotonic()

@@ -431,8 +431,6 @@ class Amplifier:
     # ---- internals ---------------------------------------------------------------------------
 
     def _heartbeat_loop(self) -> None:
-        # Not background work (drivers.scheduling): it holds the link until its reply is in, and a heartbeat
-        # woken late would hold up the loop's next command.
         while not self._stop.wait(self.heartbeat_period_s / 2):
             if self._clock() - self._last_exchange < self.heartbeat_period_s:
                 continue

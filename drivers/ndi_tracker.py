@@ -30,7 +30,6 @@ import numpy as np
 import serial
 
 from drivers.errors import DeviceError, DeviceTimeoutError, InputDataError, LinkLostError, ProtocolError
-from drivers.scheduling import run_in_background
 from firmware_protocol.errors import FrameError
 from firmware_protocol.ndi import (
     CR,
@@ -479,10 +478,6 @@ class NDITracker:
         self._reader = None
 
     def _read_loop(self, mode: str, period_s: float) -> None:
-        # Reference poses for the recording, never in the control path: background work, out of the loop's way
-        # when it wakes. Its nice value stays: it shares the interpreter's lock with the loop, and at a lower
-        # share it could be kept off the cores while holding it.
-        run_in_background(f"the tracker's reader ({self.where})")
         next_at = time.monotonic()
         while not self._reader_stop.is_set():
             try:

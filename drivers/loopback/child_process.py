@@ -16,16 +16,6 @@ Python work does not take the appliance's GIL. Both talk the same way, and this 
   answers every request with ``{"value": ...}`` or ``{"error": "Type: message"}``, and ends at the end of
   its stdin, so it cannot outlive its parent.
 
-A child stands for another machine of the bench, but it keeps the scheduling its parent has: the harness
-waits for its world steps and renders, the loop for the amplifier fake's acknowledgements and the appliance's
-heartbeat holds the link until the fake replies. As ``SCHED_BATCH`` (whose wake-ups never preempt a running
-thread) every one of those replies waited for another task's time slice: at a load of 22-32 a simulated
-second took six times the wall time (x0.17 against x1.06 of real time) and the loop's latency doubled, the
-heartbeat then holding the link when the command came; at nice 10 the same (x0.33-0.37 against x0.70-0.87
-at a load of 11-15); and in a session of its own (a task group of its own where the kernel groups tasks by
-session, ``sched_autogroup``) each request and its reply waited for that group's turn (x0.41 at a load of
-9.5). Only what nobody waits for is background work: the tracker fake's server (:func:`drivers.loopback.lab.served`).
-
 What is sent, what a reply means and what a lost child means to its users stay with each module.
 """
 from __future__ import annotations

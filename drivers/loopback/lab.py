@@ -28,30 +28,6 @@ import numpy as np
 from drivers.loopback.world import RobotState, SimWorld
 
 
-#: How often a fake's server wakes when the host is silent, in a lab. The lab's steps advance the fakes
-#: themselves (every substep reads the amplifier's measured currents, which ticks it to the step's time;
-#: neither fake sends unsolicited bytes), and between steps the lab's clock stands still, so a server has
-#: nothing to tick on its own: it wakes for the host's bytes, and this often only to see whether it was
-#: stopped. At a server's default (2 ms) the two servers woke ~1000 times a wall second, and a wake-up
-#: inside the frame loop's window takes the loop's core.
-SERVER_IDLE_S = 0.1
-
-
-def served(fake: Any, link: str, clock: Any, *, background: bool = False) -> Any:
-    """``fake`` served on a pty (``link`` "pty") or a loopback TCP port ("tcp"), on the lab's ``clock``; with
-    ``background`` its server's thread is background work (``drivers.scheduling``).
-
-    The tracker fake's server is (its replies feed the recording's reference poses, never the loop, and it is
-    polled at 60 Hz of wall time, so ~1 ms of its work fell inside one loop window in ten and, woken by a poll,
-    it could preempt the loop); the amplifier fake's is not: the loop waits for its acknowledgement, and the
-    appliance's heartbeat holds the link until it has its reply, so a late reply would delay the loop's
-    command."""
-    from drivers.loopback.serve import PtyServer, TcpServer
-
-    server = TcpServer if link == "tcp" else PtyServer
-    return server(fake, clock=clock, tick_s=SERVER_IDLE_S, background=background)
-
-
 class LabClock:
     """Simulated time (s) in the lab's own process: only the lab's steps move it."""
 

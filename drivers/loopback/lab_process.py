@@ -228,17 +228,19 @@ class _Remote:
 # -- the child ---------------------------------------------------------------------------------------
 def _build(setup: dict[str, Any]) -> Any:
     from drivers.loopback.amplifier_fake import FakeAmplifier
-    from drivers.loopback.lab import LabClock, LoopbackLab, served
+    from drivers.loopback.lab import LabClock, LoopbackLab
+    from drivers.loopback.serve import PtyServer, TcpServer
 
     clock = LabClock(setup["start_s"])
     fake = FakeAmplifier(setup["amplifier_config"])
-    server = served(fake, setup["amplifier_link"], clock)
+    server = TcpServer(fake, clock=clock) if setup["amplifier_link"] == "tcp" else PtyServer(fake, clock=clock)
     lab = LoopbackLab(clock, setup["world"], fake, server, setup["substep_s"], renderer=setup["renderer"])
     if setup["ots"] is not None:
         from drivers.loopback.ots_fake import NdiTrackerFake, NoiseModel
 
         ots_fake = NdiTrackerFake(lab.tool_poses, noise=NoiseModel(seed=setup["ots"]["seed"]))
-        lab.attach_tracker(ots_fake, served(ots_fake, setup["ots"]["link"], clock, background=True))
+        lab.attach_tracker(ots_fake, TcpServer(ots_fake, clock=clock) if setup["ots"]["link"] == "tcp"
+                           else PtyServer(ots_fake, clock=clock))
     return lab
 
 

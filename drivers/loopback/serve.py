@@ -3,8 +3,7 @@
 A fake implements :class:`StreamDevice`: it is fed the bytes the host wrote and returns the bytes the
 device answers, and it is ticked regularly so that time-driven behaviour (ramps, watchdogs, frame
 counters) advances on the injected clock even when the host is silent. The server owns one thread
-that does the I/O; the device itself never touches a file descriptor. With ``background=True`` that thread
-runs as background work (:mod:`drivers.scheduling`): its wake-ups never preempt another thread.
+that does the I/O; the device itself never touches a file descriptor.
 
 What a pty does not carry: a serial break, line speed (accepted, never enforced) and modem lines.
 """
@@ -19,8 +18,6 @@ import threading
 import time
 import tty
 from typing import Callable, Protocol
-
-from drivers.scheduling import run_in_background
 
 log = logging.getLogger(__name__)
 
@@ -41,9 +38,8 @@ class LinkFilter(Protocol):
 
 class _Server:
     def __init__(self, device: StreamDevice, clock: Callable[[], float], tick_s: float,
-                 link_filter: LinkFilter | None, background: bool = False) -> None:
+                 link_filter: LinkFilter | None) -> None:
         self.device = device
-        self.background = background
         self.clock = clock
         self.tick_s = tick_s
         self.link_filter = link_filter
@@ -64,13 +60,8 @@ class _Server:
         return self._filtered(reply, "to_host")
 
     def start(self, name: str) -> None:
-        self._thread = threading.Thread(target=self._serve_thread, name=name, daemon=True)
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
-
-    def _serve_thread(self) -> None:
-        if self.background:
-            run_in_background(f"the fake's server {threading.current_thread().name}")
-        self._run()
 
     def _run(self) -> None:  # pragma: no cover - replaced by subclasses
         raise NotImplementedError
@@ -97,8 +88,8 @@ class PtyServer(_Server):
     """
 
     def __init__(self, device: StreamDevice, *, clock: Callable[[], float] = time.monotonic,
-                 tick_s: float = 0.002, link_filter: LinkFilter | None = None, background: bool = False) -> None:
-        super().__init__(device, clock, tick_s, link_filter, background)
+                 tick_s: float = 0.002, link_filter: LinkFilter | None = None) -> None:
+        super().__init__(device, clock, tick_s, link_filter)
         self.master_fd, self._slave_fd = os.openpty()
         tty.setraw(self._slave_fd)
         tty.setraw(self.master_fd)
@@ -152,8 +143,8 @@ class TcpServer(_Server):
 
     def __init__(self, device: StreamDevice, *, host: str = "127.0.0.1", port: int = 0,
                  clock: Callable[[], float] = time.monotonic, tick_s: float = 0.002,
-                 link_filter: LinkFilter | None = None, background: bool = False) -> None:
-        super().__init__(device, clock, tick_s, link_filter, background)
+                 link_filter: LinkFilter | None = None) -> None:
+        super().__init__(device, clock, tick_s, link_filter)
         self._listener = socket.create_server((host, port))
         self._listener.settimeout(tick_s)
         self.host, self.port = self._listener.getsockname()[:2]

@@ -14,20 +14,6 @@ import pytest
 
 
 @pytest.fixture
-def thread_scheduling() -> Callable[[int], list[tuple[int, int]]]:
-    """``read(pid)``: (nice, policy) of every thread of process ``pid`` (``/proc/PID/task/*/stat``; Linux)."""
-
-    def read(pid: int) -> list[tuple[int, int]]:
-        found = []
-        for task in os.listdir(f"/proc/{pid}/task"):
-            fields = Path(f"/proc/{pid}/task/{task}/stat").read_text().rsplit(")", 1)[1].split()
-            found.append((int(fields[16]), int(fields[38])))
-        return found
-
-    return read
-
-
-@pytest.fixture
 def child_outlives_no_parent(tmp_path: Path) -> Callable[[str, str, str], None]:
     """``check(start, how, what)``: a parent process runs ``start`` (Python that binds ``device``, a
     device with a child process, and makes its first request), prints the child's pid and frames file, and

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import copy
 import os
-import sys
 import time
 
 import numpy as np
@@ -14,13 +13,12 @@ from appliance.config_io import config_path, read_yaml
 from drivers.amplifier import Amplifier
 from drivers.errors import DeviceError
 from drivers.loopback.amplifier_fake import FakeAmplifier, FakeAmplifierConfig
-from drivers.loopback.lab import SERVER_IDLE_S, LabClock, LoopbackLab
+from drivers.loopback.lab import LabClock, LoopbackLab
 from drivers.loopback.lab_process import LabProcess, LabProcessError
 from drivers.loopback.serve import PtyServer
 from drivers.loopback.world import SimWorld
 from drivers.loopback.xray_render import BiplaneRenderer, RobotBody, biplane_views
 from drivers.transport import open_serial
-from firmware_protocol.amplifier import Fault
 
 AMPLIFIER = FakeAmplifierConfig(channels=8, rated_current_a=12.0, max_current_a=12.0, slew_a_per_s=120.0,
                                 coil_resistance_ohm=1.95, coil_inductance_h=0.052)
@@ -135,38 +133,3 @@ def test_the_child_does_not_outlive_its_parent(child_outlives_no_parent, how: st
                             renderer=make_renderer(), substep_s=0.005, ots={{"link": "pty", "seed": 1}})
         device.step(0.05)
     """, how, "lab")
-
-
-@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="thread scheduling is read from /proc")
-def test_the_child_labs_tracker_server_is_background_work_and_its_servers_wake_for_the_host(
-        thread_scheduling) -> None:
-    """The tracker fake's server (polled at 60 Hz, waited for by nobody in the loop) runs as background work;
-    the lab and the amplifier fake's server, whose replies the harness and the loop wait for, as their parent;
-    the servers wake for the host, not every 2 ms."""
-    with LabProcess(clock=LabClock(), world=make_world(), amplifier_config=AMPLIFIER, amplifier_link="pty",
-                    renderer=make_renderer(), substep_s=0.005, ots={"link": "pty", "seed": 1}) as lab:
-        lab.step(0.05)
-        pid = lab.process.pid
-        tasks = thread_scheduling(pid)
-        assert len(tasks) >= 3                       # the lab and both servers
-        mine = (os.getpriority(os.PRIO_PROCESS, 0), os.sched_getscheduler(0))
-        assert sorted(tasks) == sorted([mine] * (len(tasks) - 1) + [(mine[0], os.SCHED_BATCH)])
-        assert os.sched_getscheduler(0) != os.SCHED_BATCH
-        assert lab._request(("get", "amplifier_server", "tick_s")) == SERVER_IDLE_S
-        assert lab._request(("get", "ots_server", "tick_s")) == SERVER_IDLE_S
-
-
-def test_without_its_servers_ticking_the_lab_still_trips_the_amplifiers_watchdog() -> None:
-    """The lab's steps advance the amplifier fake (its servers no longer tick it between them): a host that
-    goes silent after enabling the output meets a latched watchdog once the lab has stepped past it."""
-    with LabProcess(clock=LabClock(), world=make_world(), amplifier_config=AMPLIFIER, amplifier_link="pty",
-                    renderer=make_renderer(), substep_s=0.005) as lab:
-        amplifier = Amplifier(open_serial(lab.amplifier_url, timeout=0.005), heartbeat_period_s=0.0)
-        try:
-            amplifier.enable()
-            lab.step(0.1)
-            assert lab.amplifier_fake.snapshot().output_on
-            lab.step(0.2)                              # past the 200 ms watchdog, nothing sent
-            assert lab.amplifier_fake.snapshot().faults & Fault.WATCHDOG
-        finally:
-            amplifier.close()
