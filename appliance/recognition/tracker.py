@@ -43,6 +43,7 @@ from appliance.recognition.body_prior import BodyModel, end_clutter, ends_used, 
 from appliance.recognition.correspondence import pair_candidates, pairing_rms
 from appliance.recognition.detection import detect
 from appliance.recognition.features import Features2D, features
+from appliance.recognition.head_by_body import axial_rows, chi2_of, plus_end
 from appliance.recognition.plausibility import (
     at_odds_with_track,
     cut_by_edge,
@@ -217,6 +218,7 @@ class PostureTracker:
                 rec = reconstruct(self.calibration, self.F, feats["p"], feats["q"], self.settings, previous)
             rec = self._head_by_clean_view(rec, blobs, feats, previous)
             rec = self._head_in_doubt(rec, blobs, feats)
+            rec = self._head_by_body(rec, blobs, feats, previous)
         except ValueError as err:
             self._lose()
             posture = Posture.lost(frame, t, f"reconstruction failed: {err}")
@@ -534,6 +536,49 @@ class PostureTracker:
                                  f"{self.settings.head_claim_min_confidence:g} needed, the other view's ramps "
                                  f"included)"]
         return replace(rec, head_identified=False, view_features=final, reasons=reasons)
+
+    def _head_by_body(self, rec: Reconstruction, blobs: dict[str, Blob], feats: dict[str, Features2D],
+                      previous: np.ndarray | None) -> Reconstruction:
+        """The head told by the known body (:mod:`.head_by_body`) where the views' ramps leave it unidentified
+        or claim it over another structure.
+
+        The body is fitted along the axis with its head at either end, each view's ends measured as the
+        cone's apex and the flat tail accordingly; where one end fits better by ``settings.head_body_chi2``
+        and fits well itself (``settings.head_body_fit`` per degree of freedom), the head is there: the
+        reconstruction is redone with both views claiming it (the cone's apex then extrapolated from its
+        ramp). An unidentified head whose fit is not decisive stays unidentified; a claim over another
+        structure stands unless the fit decisively puts the head at the other end. Claims by clean views
+        are left alone (a plain frame, :mod:`.steady_state`, never reaches this), and so is a body whose
+        cylinder is shorter than its diameter (robot 4: its tail is no step, :mod:`.body_kernels`).
+        """
+        body = self.body
+        s = self.settings
+        if (body is None or s.estimator == "paper" or rec.direction is None or not body.cone_length_mm > 0
+                or not body.length_mm - body.cone_length_mm >= body.diameter_mm
+                or any(feat.reach is None for feat in feats.values())):
+            return rec   # (a body without a flat tail, robot 4, has no tail crossing to measure: body_kernels)
+        if rec.head_identified and not any(blob.clutter > s.max_clutter for blob in blobs.values()):
+            return rec
+        clutter = {name: blob.clutter for name, blob in blobs.items()}
+        rows_plus, rows_minus = axial_rows(self.calibration, rec.centroid, rec.direction, feats, clutter, body)
+        at_plus, at_minus = chi2_of(rows_plus, s.head_body_cap), chi2_of(rows_minus, s.head_body_cap)
+        best, other = (at_plus, at_minus) if at_plus <= at_minus else (at_minus, at_plus)
+        if not (other - best >= s.head_body_chi2 and best <= s.head_body_fit * (len(rows_plus) - 1)):
+            return rec
+        head_at_plus = at_plus <= at_minus
+        if rec.head_identified and head_at_plus:
+            return rec   # the claim (the +direction end when identified) is the body's
+        claimed = {}
+        for name, feat in feats.items():
+            plus = plus_end(self.calibration, name, rec.centroid, rec.direction, feat)
+            claimed[name] = feat.with_head(plus if head_at_plus else 1 - plus)   # (its tips re-estimated)
+        redone = reconstruct(self.calibration, self.F, claimed["p"], claimed["q"], s, previous)
+        if (not redone.head_identified or redone.direction is None
+                or (float(redone.direction @ rec.direction) > 0) != head_at_plus):
+            return rec
+        redone.reasons.append(f"the head is told by the body's shape: measured as the cone's apex, that end puts "
+                              f"the body where the rest of it is (chi-square {best:.1f} against {other:.1f})")
+        return redone
 
     # ------------------------------------------------------------------------------------ results
     def _posture(self, frame: int, t: float, rec: Reconstruction, blobs: dict[str, Blob]) -> Posture:
