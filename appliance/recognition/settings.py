@@ -159,9 +159,10 @@ class RecognitionSettings(StrictModel):
     #: ``head_body_chi2`` (chi-square) and fits within ``head_body_fit`` per degree of freedom, each
     #: measurement's term capped at ``head_body_cap`` squared (so that no end decides alone): where the
     #: ramps leave the head unidentified, or claim it over another structure (then only a decisive fit for
-    #: the other end overrules the claim). Dev seeds 1-20, robots 3 and 7, cold: of the 222 frames it
-    #: examines, the fit points to the wrong end in 2 (by 5.5 and 3.2), and decides 6 of the 8 heads the
-    #: ramps left unidentified or wrong (by 23.2 to 37.4).
+    #: the other end overrules the claim). Dev seeds 1-20, robots 3 and 7, cold: of the 209 frames it
+    #: examines (ok, the axis resolved, the head unidentified or claimed over another structure) the fit
+    #: leans to the wrong end in 2 (by 5.5 and 3.2), and decides 6 of the 8 heads the ramps left
+    #: unidentified or wrong (by 23.2 to 37.4; the other two by 2.7 and 17.0 stay unidentified).
     head_body_chi2: float = Field(20.0, gt=0)
     head_body_fit: float = Field(9.0, gt=0)
     head_body_cap: float = Field(4.0, gt=0)
