@@ -30,7 +30,8 @@ Where the head is not identified the tips' order is unknown, and so is the side 
 body's offset lies on: the measured ends then choose between the two placements only where one fits
 decisively better (the head is still not claimed); otherwise the frame keeps its measured centroid and
 tips. (Both ends measured as flat, the apex's half-height crossing falls short of it by about the
-body's offset asymmetry, so such frames mostly stay undecided.)
+body's offset asymmetry, so such frames mostly stay undecided. The tracker first tries each end measured
+as the cone's apex, :mod:`.head_by_body`: what reaches this unidentified, the body's shape could not tell.)
 
 Applied to the :class:`.Posture` (both the tracker's general path and the steady state's plain frames
 build one, to the last bit the same) by one compiled kernel (:func:`.body_kernels.place`, issue 8: as

@@ -154,6 +154,18 @@ class RecognitionSettings(StrictModel):
     head_claim_min_confidence: float = Field(0.5, ge=0)
     #: The ramp-length uncertainty of a clean view (px): blur and the level crossings' interpolation.
     head_ramp_floor_px: float = Field(0.5, gt=0)
+    #: With the robot's body known, the head is claimed by the body's shape (:mod:`.head_by_body`: the
+    #: body fitted along the axis with its apex at either end) where one end fits better by
+    #: ``head_body_chi2`` (chi-square) and fits within ``head_body_fit`` per degree of freedom, each
+    #: measurement's term capped at ``head_body_cap`` squared (so that no end decides alone): where the
+    #: ramps leave the head unidentified, or claim it over another structure (then only a decisive fit for
+    #: the other end overrules the claim). Dev seeds 1-20, robots 3 and 7, cold: of the 209 frames it
+    #: examines (ok, the axis resolved, the head unidentified or claimed over another structure) the fit
+    #: leans to the wrong end in 2 (by 5.5 and 3.2), and decides 6 of the 8 heads the ramps left
+    #: unidentified or wrong (by 23.2 to 37.4; the other two by 2.7 and 17.0 stay unidentified).
+    head_body_chi2: float = Field(20.0, gt=0)
+    head_body_fit: float = Field(9.0, gt=0)
+    head_body_cap: float = Field(4.0, gt=0)
 
     #: A rod whose 3D centroid and tips reproject worse than this (RMS px over both views) onto its images
     #: is lost (plausibility.off_its_images; a frame over another structure: ``max_cluttered_reprojection_px``).

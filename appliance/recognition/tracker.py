@@ -18,6 +18,8 @@ Where the views' head claims disagree and only one view overlaps another structu
 claim is taken (``_head_by_clean_view``; the reconstruction alone leaves such a head unidentified).
 A head claimed by one view alone, over another structure, whose profiles' evidence is weak
 (:func:`head_claim_confidence`) is withheld (``_head_in_doubt``): a wrong claim swaps the tips.
+Where the robot's body is known, a head left unidentified, or claimed over another structure, is told by the
+body's shape where that is decisive (``_head_by_body``, :mod:`.head_by_body`).
 A tracker given the robot's body (``body=``, with ``settings.body_prior``) places the centroid and tips
 of every ok posture by it (:func:`.body_prior.place_body`; on the plain frames' postures, in place,
 :func:`.body_prior.place_plain_body`: the same compiled arithmetic on the same numbers).
@@ -43,6 +45,7 @@ from appliance.recognition.body_prior import BodyModel, end_clutter, ends_used, 
 from appliance.recognition.correspondence import pair_candidates, pairing_rms
 from appliance.recognition.detection import detect
 from appliance.recognition.features import Features2D, features
+from appliance.recognition.head_by_body import axial_rows, chi2_of
 from appliance.recognition.plausibility import (
     at_odds_with_track,
     cut_by_edge,
@@ -223,33 +226,15 @@ class PostureTracker:
             posture.timings_us = timings
             return posture
         timings["triangulation"] = (time.perf_counter_ns() - start) / 1e3
-        mismatch = rec.centroid_epipolar_px
-        if mismatch is None:
-            mismatch = self._centroid_mismatch_px(feats)
-        tips_rms = min(rec.pairing.rms_a_px, rec.pairing.rms_b_px)
-        failure = None
-        if mismatch > self.settings.epipolar_band_px:
-            failure = (f"the robot images of the two views do not correspond (centroids {mismatch:.1f} px from "
-                       f"each other's epipolar lines)")
-        elif tips_rms > self.settings.tips_band_px and tips_rms > max(
-                self.settings.tips_band_px, self.settings.tips_band_fraction * max(
-                    _image_length_px(f) for f in feats.values())):
-            failure = (f"the robot images' ends do not correspond in either pairing (RMS epipolar distance "
-                       f"{tips_rms:.1f} px); one view's blob is not (only) the robot")
-        else:
-            failure = (not_robot_like(self.calibration, rec, blobs, self.settings)
-                       or cut_by_edge(self.calibration, blobs)
-                       or off_its_images(self.calibration, rec, blobs, self.settings)
-                       or at_odds_with_track(rec, blobs, previous, self._track.length_mm if self._track else None,
-                                             self.settings))
-            if failure is not None:
-                log.debug("frame %d rejected: %s", frame, failure)
+        failure = self._rejection(rec, blobs, feats, previous)
         if failure is not None:
             # The two blobs are not images of one object: reporting a pose would be inventing one.
+            log.debug("frame %d rejected: %s", frame, failure)
             self._lose()
             posture = Posture.lost(frame, t, failure)
             posture.timings_us = timings
             return posture
+        rec = self._head_by_body(rec, blobs, feats, previous)
         rec = declutter(self.calibration, rec, blobs, self.settings)
         posture = self._posture(frame, t, rec, blobs)
         if self.body is not None:
@@ -476,6 +461,27 @@ class PostureTracker:
         cq = self.calibration.q.undistort_points(feats["q"].centroid)
         return float(epipolar_distance_px(self.F, cp, cq)[0])
 
+    def _rejection(self, rec: Reconstruction, blobs: dict[str, Blob], feats: dict[str, Features2D],
+                   previous: np.ndarray | None) -> str | None:
+        """Why the two views' blobs are not images of one robot-like object (the frame is then lost), or None."""
+        mismatch = rec.centroid_epipolar_px
+        if mismatch is None:
+            mismatch = self._centroid_mismatch_px(feats)
+        tips_rms = min(rec.pairing.rms_a_px, rec.pairing.rms_b_px)
+        if mismatch > self.settings.epipolar_band_px:
+            return (f"the robot images of the two views do not correspond (centroids {mismatch:.1f} px from "
+                    f"each other's epipolar lines)")
+        if tips_rms > self.settings.tips_band_px and tips_rms > max(
+                self.settings.tips_band_px, self.settings.tips_band_fraction * max(
+                    _image_length_px(f) for f in feats.values())):
+            return (f"the robot images' ends do not correspond in either pairing (RMS epipolar distance "
+                    f"{tips_rms:.1f} px); one view's blob is not (only) the robot")
+        return (not_robot_like(self.calibration, rec, blobs, self.settings)
+                or cut_by_edge(self.calibration, blobs)
+                or off_its_images(self.calibration, rec, blobs, self.settings)
+                or at_odds_with_track(rec, blobs, previous, self._track.length_mm if self._track else None,
+                                      self.settings))
+
     def _head_by_clean_view(self, rec: Reconstruction, blobs: dict[str, Blob], feats: dict[str, Features2D],
                             previous: np.ndarray | None) -> Reconstruction:
         """The head as the clean view sees it, where the views' claims disagree and only the other view
@@ -534,6 +540,55 @@ class PostureTracker:
                                  f"{self.settings.head_claim_min_confidence:g} needed, the other view's ramps "
                                  f"included)"]
         return replace(rec, head_identified=False, view_features=final, reasons=reasons)
+
+    def _head_by_body(self, rec: Reconstruction, blobs: dict[str, Blob], feats: dict[str, Features2D],
+                      previous: np.ndarray | None) -> Reconstruction:
+        """The head told by the known body (:mod:`.head_by_body`) where the views' ramps leave it unidentified
+        or claim it over another structure.
+
+        Called on a frame that passed the checks (:meth:`_rejection`). The body is fitted along the axis
+        with its head at either end, each view's ends measured as the cone's apex and the flat tail
+        accordingly; where one end fits better by ``settings.head_body_chi2`` and fits well itself
+        (``settings.head_body_fit`` per degree of freedom), the head is there: the reconstruction is redone
+        with both views claiming it (the cone's apex then extrapolated from its ramp), and taken if it
+        passes the same checks. An unidentified head whose fit is not decisive stays unidentified; a claim over another
+        structure stands unless the fit decisively puts the head at the other end. Claims by clean views
+        only are left alone (a plain frame, :mod:`.steady_state`, never reaches this), and so is a body whose
+        cylinder is shorter than its diameter (robot 4: its tail is no step, :mod:`.body_kernels`).
+        """
+        body = self.body
+        s = self.settings
+        if (body is None or s.estimator == "paper" or rec.direction is None or not body.cone_length_mm > 0
+                or not body.length_mm - body.cone_length_mm >= body.diameter_mm
+                or any(feat.reach is None for feat in feats.values())):
+            return rec   # (a body without a flat tail, robot 4, has no tail crossing to measure: body_kernels)
+        if rec.head_identified and not any(feat.head_index is not None and blobs[name].clutter > s.max_clutter
+                                           for name, feat in feats.items()):
+            return rec   # claimed by clean views only
+        clutter = {name: blob.clutter for name, blob in blobs.items()}
+        rows_plus, rows_minus, plus_index = axial_rows(self.calibration, rec.centroid, rec.direction, feats, clutter,
+                                                       body)
+        at_plus, at_minus = chi2_of(rows_plus, s.head_body_cap), chi2_of(rows_minus, s.head_body_cap)
+        best, other = (at_plus, at_minus) if at_plus <= at_minus else (at_minus, at_plus)
+        if not (other - best >= s.head_body_chi2 and best <= s.head_body_fit * (len(rows_plus) - 1)):
+            return rec
+        head_at_plus = at_plus <= at_minus
+        if rec.head_identified and head_at_plus:
+            return rec   # the claim (the +direction end when identified) is the body's
+        # Both views claim it (with_head: their tips re-estimated, the apex by the cone's model).
+        claimed = {name: feat.with_head(plus_index[name] if head_at_plus else 1 - plus_index[name])
+                   for name, feat in feats.items()}
+        try:
+            redone = reconstruct(self.calibration, self.F, claimed["p"], claimed["q"], s, previous)
+        except ValueError:
+            return rec
+        if (not redone.head_identified or redone.direction is None
+                or (float(redone.direction @ rec.direction) > 0) != head_at_plus
+                or self._rejection(redone, blobs, feats, previous) is not None):
+            return rec   # (the redone frame must pass the checks the first one passed: a claim loses no frame)
+        redone.reasons.append(f"the head is told by the body's shape: measured as the cone's apex, that end puts "
+                              f"the body where the rest of it is (chi-square {best:.1f} against {other:.1f})")
+        return redone
 
     # ------------------------------------------------------------------------------------ results
     def _posture(self, frame: int, t: float, rec: Reconstruction, blobs: dict[str, Blob]) -> Posture:
