@@ -316,3 +316,25 @@ def test_a_weak_head_claim_by_one_cluttered_view_is_withheld(
     assert all(feat.head_index is None for feat in rec.view_features.values())
     assert np.array_equal(rec.tips, first.tips) and np.array_equal(rec.direction, first.direction)
     assert any("the head is not claimed: only view p" in reason for reason in rec.reasons)
+
+
+@pytest.mark.parametrize("robot_id,along", [(6, True), (3, False), (1, False), (4, False)])
+def test_wide_robot_has_its_background_interpolated_along_structure(scene: tuple[Calibration, BiplaneRenderer],
+                                                                    robot_id: int, along: bool) -> None:
+    """Robot 6 (5 mm) is as wide as the vessels it crosses: its tracker turns the along-structure fill on;
+    the thinner robots keep the default, and so does the paper's estimator and a tracker without a robot."""
+    from appliance.robots import load_robots
+
+    calibration, _ = scene
+    spec = load_robots()[robot_id]
+    given = RecognitionSettings()
+    tracker = PostureTracker(calibration, given, body=spec)
+    assert tracker.settings.background_along_structure is along
+    # Nothing else changes, and the caller's settings are left as they were.
+    assert tracker.settings.model_copy(update={"background_along_structure": False}) == given
+    assert not given.background_along_structure
+    assert not PostureTracker(calibration, RecognitionSettings(estimator="paper"),
+                              body=spec).settings.background_along_structure
+    assert not PostureTracker(calibration, given).settings.background_along_structure
+    narrow = RecognitionSettings(along_structure_min_diameter_mm=spec.diameter_mm + 0.5)
+    assert not PostureTracker(calibration, narrow, body=spec).settings.background_along_structure
