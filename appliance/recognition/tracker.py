@@ -124,10 +124,12 @@ def head_claim_confidence(views: dict[str, tuple[Features2D, float, int | None]]
 def _for_body(settings: RecognitionSettings, body: BodyModel | object | None) -> RecognitionSettings:
     """The settings the tracker of ``body`` works with: a robot at least
     ``settings.along_structure_min_diameter_mm`` wide has its background interpolated along structure
-    (``background_along_structure``; why: that setting's comment). Without a known body, and for the
-    paper's estimator (a reference, kept as it was), as given."""
+    (``background_along_structure``; why: that setting's comment). Without a known body, with the body
+    prior off (the tracker given the body is then the model-free one) and for the paper's estimator (a
+    reference, kept as it was), as given."""
     diameter = getattr(body, "diameter_mm", None)
     if (diameter is None or settings.background_along_structure or settings.estimator == "paper"
+            or not settings.body_prior
             or not float(diameter) >= settings.along_structure_min_diameter_mm):
         return settings
     return settings.model_copy(update={"background_along_structure": True})

@@ -322,7 +322,8 @@ def test_a_weak_head_claim_by_one_cluttered_view_is_withheld(
 def test_wide_robot_has_its_background_interpolated_along_structure(scene: tuple[Calibration, BiplaneRenderer],
                                                                     robot_id: int, along: bool) -> None:
     """Robot 6 (5 mm) is as wide as the vessels it crosses: its tracker turns the along-structure fill on;
-    the thinner robots keep the default, and so does the paper's estimator and a tracker without a robot."""
+    the thinner robots keep the default, and so do the paper's estimator, a tracker without a robot and one
+    with the body prior off (the model-free pipeline)."""
     from appliance.robots import load_robots
 
     calibration, _ = scene
@@ -336,5 +337,7 @@ def test_wide_robot_has_its_background_interpolated_along_structure(scene: tuple
     assert not PostureTracker(calibration, RecognitionSettings(estimator="paper"),
                               body=spec).settings.background_along_structure
     assert not PostureTracker(calibration, given).settings.background_along_structure
+    assert not PostureTracker(calibration, RecognitionSettings(body_prior=False),
+                              body=spec).settings.background_along_structure
     narrow = RecognitionSettings(along_structure_min_diameter_mm=spec.diameter_mm + 0.5)
     assert not PostureTracker(calibration, narrow, body=spec).settings.background_along_structure
