@@ -64,6 +64,23 @@ class RecognitionSettings(StrictModel):
     #: seen near end-on or its axis near an epipolar plane, length 17-65 % off, a tip 1.5-3 mm off) and
     #: one cluttered frame 0.45 mm off that reprojects 0.6 px: nothing in the reprojection shows them.
     background_along_structure: bool = False
+    #: A known robot at least this wide (mm) has its background interpolated along structure whatever
+    #: ``background_along_structure`` says (the tracker turns it on: :class:`.PostureTracker`). Its image
+    #: is as wide as the vessels (robot 6: 5 mm, the phantom's lumen 5 mm), so a vessel crossing it obliquely
+    #: lies under a long stretch of lines across it, smeared into a wedge along the body by lines along image
+    #: columns or rows; the lines along the vessel keep it where it is. A faint body (robot 6: polymer
+    #: with 15 % NdFeB, 0.4/mm) gets a large part of its moments from that background. Measured on the
+    #: accuracy benchmark, robot 6, dev seeds 1-20 cold: centroid RMS pooled 0.118 -> 0.101 mm (503 -> 505 ok
+    #: frames of 570), tips 0.232 -> 0.193 mm, better on 14 seeds of 20, worse on seeds 1, 4, 14, 15, 18
+    #: (0.028 -> 0.041, 0.075 -> 0.114, 0.143 -> 0.148, 0.066 -> 0.088, 0.121 -> 0.146); more frames
+    #: flagged ambiguous (144 -> 182). Standing seeds, cold, centroid RMS: 777 0.192 -> 0.087, 4242 0.169 ->
+    #: 0.092, 31337 0.126 -> 0.068, 90210 0.185 -> 0.058, 60606 0.123 -> 0.055, 8675309 0.156 -> 0.115,
+    #: 20261121 0.083 -> 0.073, 24680 0.081 -> 0.086, 1234567 0.205 -> 0.270 (and its tips 0.202 -> 0.482:
+    #: one frame with the axis within 2 deg of an epipolar plane, left unresolved before, now resolved by
+    #: both views' heads 6.5 deg off, measured 40 mm long, flagged ambiguous); tracked 777 0.193 -> 0.177,
+    #: 60606 0.118 -> 0.053. The thinner robots (<= 2 mm) keep the default: on them it made frames over a
+    #: vessel ok with a tip several mm off (above).
+    along_structure_min_diameter_mm: float = Field(3.0, gt=0)
     #: Smallest and largest plausible robot images (pixels of the core, extent in px).
     min_pixels: int = Field(8, ge=1)
     max_extent_px: int = Field(420, ge=8)

@@ -124,13 +124,27 @@ def head_claim_confidence(views: dict[str, tuple[Features2D, float, int | None]]
     return total
 
 
+def _for_body(settings: RecognitionSettings, body: BodyModel | object | None) -> RecognitionSettings:
+    """The settings the tracker of ``body`` works with: a robot at least
+    ``settings.along_structure_min_diameter_mm`` wide has its background interpolated along structure
+    (``background_along_structure``; why: that setting's comment). Without a known body, with the body
+    prior off (the tracker given the body is then the model-free one) and for the paper's estimator (a
+    reference, kept as it was), as given."""
+    diameter = getattr(body, "diameter_mm", None)
+    if (diameter is None or settings.background_along_structure or settings.estimator == "paper"
+            or not settings.body_prior
+            or not float(diameter) >= settings.along_structure_min_diameter_mm):
+        return settings
+    return settings.model_copy(update={"background_along_structure": True})
+
+
 class PostureTracker:
     """Recognises the robot's posture in successive biplane frame pairs (see the module docstring)."""
 
     def __init__(self, calibration: Calibration, settings: RecognitionSettings | None = None,
                  body: BodyModel | object | None = None) -> None:
         self.calibration = calibration
-        self.settings = settings or RecognitionSettings()
+        self.settings = _for_body(settings or RecognitionSettings(), body)
         #: The robot's body (a :class:`.BodyModel`, or a catalogue :class:`appliance.robots.RobotSpec`) where
         #: the centroid and tips are placed by it (``settings.body_prior``); None: model-free.
         self.body: BodyModel | None = None

@@ -415,3 +415,28 @@ def test_a_measurement_far_off_counts_no_more_than_the_cap() -> None:
     rows = [(0.0, 1.0, 0.0), (0.0, 1.0, 0.0), (10.0, 1.0, 0.0)]
     assert chi2_of(rows, 4.0) == pytest.approx(16.0)
     assert chi2_of(rows, 100.0) == pytest.approx(2 * (10.0 / 3) ** 2 + (20.0 / 3) ** 2)
+
+
+@pytest.mark.parametrize("robot_id,along", [(6, True), (3, False), (1, False), (4, False)])
+def test_wide_robot_has_its_background_interpolated_along_structure(scene: tuple[Calibration, BiplaneRenderer],
+                                                                    robot_id: int, along: bool) -> None:
+    """Robot 6 (5 mm) is as wide as the vessels it crosses: its tracker turns the along-structure fill on;
+    the thinner robots keep the default, and so do the paper's estimator, a tracker without a robot and one
+    with the body prior off (the model-free pipeline)."""
+    from appliance.robots import load_robots
+
+    calibration, _ = scene
+    spec = load_robots()[robot_id]
+    given = RecognitionSettings()
+    tracker = PostureTracker(calibration, given, body=spec)
+    assert tracker.settings.background_along_structure is along
+    # Nothing else changes, and the caller's settings are left as they were.
+    assert tracker.settings.model_copy(update={"background_along_structure": False}) == given
+    assert not given.background_along_structure
+    assert not PostureTracker(calibration, RecognitionSettings(estimator="paper"),
+                              body=spec).settings.background_along_structure
+    assert not PostureTracker(calibration, given).settings.background_along_structure
+    assert not PostureTracker(calibration, RecognitionSettings(body_prior=False),
+                              body=spec).settings.background_along_structure
+    narrow = RecognitionSettings(along_structure_min_diameter_mm=spec.diameter_mm + 0.5)
+    assert not PostureTracker(calibration, narrow, body=spec).settings.background_along_structure
