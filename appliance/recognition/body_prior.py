@@ -170,7 +170,7 @@ _ABSENT = (0.0,) * bk.IN_VIEW_SIZE
 
 def place_body(calibration: Calibration, posture: Posture, body: BodyModel, settings: RecognitionSettings,
                clutter: dict[str, float] | None = None, axis_sigma_rad: float = 0.0,
-               ends: dict[str, tuple[float, float]] | None = None) -> Posture:
+               ends: dict[str, tuple[float, float]] | None = None, *, fresh: bool = False) -> Posture:
     """The posture with its centroid and tips placed by the known body (see the module docstring).
 
     ``clutter``: per view, :attr:`.Blob.clutter` (both paths have it; a view left out counts as clean);
@@ -179,14 +179,16 @@ def place_body(calibration: Calibration, posture: Posture, body: BodyModel, sett
     :func:`end_clutter`. A lost posture, one without an axis (unresolved mirror ambiguity) or without
     tips is returned as it is, and so is every posture of the paper's estimator (kept verbatim).
     Otherwise a copy (the posture given is left as it was); the arithmetic is :func:`.body_kernels.place`.
+    ``fresh``: the posture is the caller's own, just made and held by no one else (the tracker's general
+    path): placed in place, without the copy (``copy.copy`` of a posture is ~100 us after a frame's copy
+    has evicted the caches, more than the rest of the placement; issue 8).
     """
     if (not posture.ok or posture.direction is None or posture.tips_mm is None or posture.centroid_mm is None
             or settings.estimator == "paper"):
         return posture
     clutter = clutter or {}
     ends = ends or {}
-    numbers = [*np.asarray(posture.centroid_mm, dtype=np.float64).tolist(),
-               *np.asarray(posture.direction, dtype=np.float64).tolist()]
+    numbers = [*_floats(posture.centroid_mm), *_floats(posture.direction)]
     for name in ("p", "q"):
         obs = posture.views.get(name)
         if obs is None:
@@ -199,7 +201,17 @@ def place_body(calibration: Calibration, posture: Posture, body: BodyModel, sett
     numbers += (math.nan if measured is None else measured, axis_sigma_rad, settings.max_clutter,
                 1.0 if posture.head_identified else 0.0)
     # (copy.copy: dataclasses.replace re-runs __init__, a few us a frame)
-    return _apply(calibration.packed, copy.copy(posture), body, numbers)
+    return _apply(calibration.packed, posture if fresh else copy.copy(posture), body, numbers)
+
+
+def _floats(vector: np.ndarray) -> list[float]:
+    """``np.asarray(vector, dtype=np.float64).tolist()`` without the conversion call where it is one already."""
+    if type(vector) is np.ndarray and vector.dtype == _FLOAT64:
+        return vector.tolist()
+    return np.asarray(vector, dtype=np.float64).tolist()
+
+
+_FLOAT64 = np.dtype(np.float64)
 
 
 def place_plain_body(packed: np.ndarray, posture: Posture, body: BodyModel, settings: RecognitionSettings,

@@ -176,7 +176,9 @@ def reconstruct_from_front(calibration: Calibration, feat_p: Features2D, feat_q:
         raise ValueError(f"view {name}: the two pixels coincide; no unique plane through them")
     values = out.tolist()
     rms_a, rms_b = values[kernels.OUT_RMS_A], values[kernels.OUT_RMS_B]
-    pairing = Pairing(CASE_A if rms_a <= rms_b else CASE_B, rms_a, rms_b, abs(rms_a - rms_b) >= s.ambiguity_px)
+    # Pairing(...) without the frozen dataclass's __init__ (an object.__setattr__ per field).
+    pairing = _frozen(Pairing, {"case": CASE_A if rms_a <= rms_b else CASE_B, "rms_a_px": rms_a, "rms_b_px": rms_b,
+                                "separated": abs(rms_a - rms_b) >= s.ambiguity_px})
     plane_angle = values[kernels.OUT_PLANE_ANGLE]
     ambiguous = values[kernels.OUT_AMBIGUOUS] == 1.0
     reasons = _front_reasons(values, pairing, plane_angle)

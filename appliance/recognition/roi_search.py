@@ -84,8 +84,9 @@ def _frozen(cls: type[T], fields: dict[str, Any]) -> T:
     """An instance of the frozen dataclass ``cls`` holding ``fields`` (every field, by name), made without
     its generated ``__init__``: that one sets each field through ``object.__setattr__`` (~3 us for a
     :class:`Blob` or a :class:`Features2D`, one of each per view and frame). None of the classes built
-    so (:class:`Blob`, :class:`Features2D`, :class:`Roi`, :class:`.ViewObservation`) has a
-    ``__post_init__``; the tests compare every field with the ones ``__init__`` builds."""
+    so (:class:`Blob`, :class:`Features2D`, :class:`Roi`, :class:`.ViewObservation`, :class:`.Pairing`; and
+    the tracker's :class:`.Posture`, not frozen, whose ``__init__`` is cold code on a frame off the plain
+    path) has a ``__post_init__``; the tests compare every field with the ones ``__init__`` builds."""
     instance = object.__new__(cls)
     instance.__dict__.update(fields)
     return instance

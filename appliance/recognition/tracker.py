@@ -628,28 +628,33 @@ class PostureTracker:
                            f"(background under it varies by {max(blobs[n].clutter for n in cluttered):.0%} of "
                            f"its contrast); reduced accuracy")
         reason = "; ".join(reasons) if reasons else None
-        return Posture(frame=frame, t=t, ok=True, ambiguous=ambiguous, centroid_mm=rec.centroid,
-                       direction=rec.direction, tips_mm=rec.tips, head_identified=rec.head_identified,
-                       length_mm=rec.length_mm, reprojection_px=rec.reprojection_px, views=observations,
-                       reason=reason, direction_candidates=rec.candidates,
-                       pairing_rms_px=(rec.pairing.rms_a_px, rec.pairing.rms_b_px),
-                       plane_angle_deg=rec.plane_angle_deg)
+        # Posture(...) with every field, in its order, without the generated __init__ (it has no __post_init__).
+        return _frozen(Posture, {
+            "frame": frame, "t": t, "ok": True, "ambiguous": ambiguous, "centroid_mm": rec.centroid,
+            "direction": rec.direction, "tips_mm": rec.tips, "head_identified": rec.head_identified,
+            "length_mm": rec.length_mm, "reprojection_px": rec.reprojection_px, "views": observations,
+            "reason": reason, "direction_candidates": rec.candidates,
+            "pairing_rms_px": (rec.pairing.rms_a_px, rec.pairing.rms_b_px), "plane_angle_deg": rec.plane_angle_deg,
+            "timings_us": {}})
 
     def _placed(self, posture: Posture, rec: Reconstruction, blobs: dict[str, Blob], images: dict[str, np.ndarray]
                 ) -> Posture:
-        """:func:`.body_prior.place_body` on a posture of the per-view path: the views' clutter, the axis'
-        sigma, and near each end of a view over another structure, how much structure its neighbourhood
-        shows."""
+        """:func:`.body_prior.place_body` on a posture of the per-view path, in place (``posture`` is the one
+        :meth:`_posture` just made): the views' clutter, the axis' sigma, and near each end of a view over
+        another structure, how much structure its neighbourhood shows."""
         clutter = {name: blob.clutter for name, blob in blobs.items()}
         ends = {}
-        which = ends_used(posture, self.body, self.settings)   # (the ends whose clutter can change the placement)
-        for name, blob in blobs.items():
-            view = posture.views.get(name) if which is not None else None
-            if blob.clutter > self.settings.max_clutter and view is not None and name in self._log_bg:
-                ends[name] = end_clutter(images[name], self._log_bg[name], blob, view.centroid_px, view.tips_px,
-                                         self.settings, which)
+        max_clutter = self.settings.max_clutter
+        if clutter["p"] > max_clutter or clutter["q"] > max_clutter:
+            which = ends_used(posture, self.body, self.settings)  # (the ends whose clutter can change the placement)
+            for name, blob in blobs.items():
+                view = posture.views.get(name) if which is not None else None
+                if blob.clutter > max_clutter and view is not None and name in self._log_bg:
+                    ends[name] = end_clutter(images[name], self._log_bg[name], blob, view.centroid_px, view.tips_px,
+                                             self.settings, which)
+        # (fresh: the posture _posture just made, held by no one else)
         return place_body(self.calibration, posture, self.body, self.settings, clutter, rec.axis_sigma_rad or 0.0,
-                          ends)
+                          ends, fresh=True)
 
     def _remember(self, posture: Posture) -> None:
         assert posture.centroid_mm is not None

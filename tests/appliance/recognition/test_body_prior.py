@@ -83,6 +83,25 @@ def test_an_end_over_a_vessel_is_outvoted_by_the_clean_evidence(calibration: Cal
     assert np.linalg.norm(blind.centroid_mm - c) > np.linalg.norm(placed.centroid_mm - c)
 
 
+def test_a_fresh_posture_is_placed_in_place_as_a_copy_would_be(calibration: Calibration, robot6: BodyModel) -> None:
+    # fresh=True (the tracker's own new posture): the same numbers in every field as the copy place_body makes
+    # otherwise, on the posture given itself; without it the posture given is left as it was.
+    c, u, head, tail = _truth(robot6, (2.0, -3.0, 4.0), (0.6, -0.3, 0.74))
+    for moved, shift, clutter in (({}, 0.02, None), ({("p", 1): 6.0}, 0.6, {"p": 0.05, "q": 0.02})):
+        posture = _posture(calibration, c, u, head, tail, moved=moved, centroid_shift_mm=shift)
+        before = posture.centroid_mm.copy()
+        copied = place_body(calibration, posture, robot6, SETTINGS, clutter, 0.001)
+        assert copied is not posture and np.array_equal(posture.centroid_mm, before)
+        placed = place_body(calibration, posture, robot6, SETTINGS, clutter, 0.001, fresh=True)
+        assert placed is posture and not np.array_equal(placed.centroid_mm, before)
+        for name in ("centroid_mm", "tips_mm", "direction"):
+            assert np.array_equal(getattr(placed, name), getattr(copied, name)), name
+        assert (placed.ambiguous, placed.reason, placed.length_mm) == (copied.ambiguous, copied.reason,
+                                                                       copied.length_mm)
+    # The second case is flagged (the centroid slid 0.6 mm from the tails), so the reason is joined in place too.
+    assert placed.ambiguous and placed.reason
+
+
 def test_a_head_run_on_into_a_vessel_is_not_believed(calibration: Calibration, robot6: BodyModel) -> None:
     c, u, head, tail = _truth(robot6, (2.0, -3.0, 4.0), (0.6, -0.3, 0.74))
     posture = _posture(calibration, c, u, head, tail, moved={("p", 0): 15.0, ("q", 0): 15.0})
