@@ -1,0 +1,171 @@
+"""How well the reported axis uncertainty predicts the actual axis error, in 2D and in 3D.
+
+The frame is flagged ambiguous when the 3D axis sigma exceeds ``RecognitionSettings.max_axis_sigma_deg``,
+so a silent failure (axis error above 5 deg, not flagged) is an error many sigmas out, or a sigma that
+is too small. For each robot and seed, the frames of ``benchmarks/accuracy.py`` (same poses, same
+noise, recognised from scratch by the default pipeline) are recognised again while recording the
+features the last reconstruction of the frame was given; the true 2D axis of each view is the
+projection of the true head and tail. The tables give:
+
+* 2D, per robot and image length of the blob (its tips' distance, px), over the views off other
+  structures (clutter < 0.05) that are elongated enough to give an axis plane: the ratio z =
+  |2D axis error| / reported 2D sigma (RMS, median, 90th percentile, maximum; a calibrated Gaussian
+  sigma gives RMS 1, median 0.67, p90 1.64), and the RMS of z with a length floor ``c / L`` (rad)
+  added in quadrature, for a few ``c``;
+* 3D, per robot: the ratio |3D axis error| / reported 3D sigma over the frames that are ok and not
+  ambiguous (the 3D sigma is the larger of the two; a calibrated one gives an RMS between 1 and
+  sqrt 2);
+* every frame with an axis error above 5 deg that is not flagged, with both views' 2D numbers.
+
+Usage: ``python benchmarks/axis_sigma_calibration.py [--robots 4,2,7] [--seeds 1-20] [--poses 30]``.
+It prints tables and asserts nothing; use development seeds, not the standing ones.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+import accuracy  # noqa: E402  (benchmarks/ is the script's directory, on sys.path)
+
+from appliance.recognition import reconstruction, tracker  # noqa: E402
+
+LENGTH_BINS_PX = (0, 7, 10, 14, 20, 40, 80, 10_000)
+LENGTH_FLOORS_RAD_PX = (0.0, 0.05, 0.1)
+CLEAN_CLUTTER = 0.05
+
+
+class _Recorder:
+    """Wraps the default reconstruction and the feature step so each frame's inputs can be read after it."""
+
+    def __init__(self) -> None:
+        self.calls: list[tuple[Any, Any, Any]] = []
+        self.clutter: dict[int, tuple[Any, float]] = {}
+        reconstruct, features = reconstruction._reconstruct_weighted, tracker.features
+
+        def recorded_reconstruct(calibration, feat_p, feat_q, settings, previous):  # type: ignore[no-untyped-def]
+            rec = reconstruct(calibration, feat_p, feat_q, settings, previous)
+            self.calls.append((feat_p, feat_q, rec))
+            return rec
+
+        def recorded_features(blob, settings=None):  # type: ignore[no-untyped-def]
+            feat = features(blob, settings)
+            self.clutter[id(feat)] = (feat, blob.clutter)   # the feature kept: its id stays its own
+            return feat
+
+        reconstruction._reconstruct_weighted = recorded_reconstruct
+        tracker.features = recorded_features
+
+    def clear(self) -> None:
+        self.calls.clear()
+        self.clutter.clear()
+
+
+def _line_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    c = abs(float(np.dot(a, b))) / float(np.linalg.norm(a) * np.linalg.norm(b))
+    return math.degrees(math.acos(min(c, 1.0)))
+
+
+def collect(robot_id: int, seed: int, poses_n: int, recorder: _Recorder) -> list[dict[str, Any]]:
+    """Per frame: the score, the 3D sigma, and per view the 2D axis error, its sigma, length and clutter."""
+    a = accuracy
+    spec = a.load_robots()[robot_id]
+    views = a.biplane_views()
+    calibration = a.true_calibration(views)
+    phantom = a.VesselPhantom(a.smooth_centreline(a.S_BEND_CENTRELINE_MM), a.VESSEL_RADIUS_MM,
+                              a.VESSEL_ATTENUATION_PER_MM)
+    imaging = a.ImagingSettings()
+    body = a.RobotBody(spec.length_mm, spec.diameter_mm, spec.tip_angle_deg, spec.attenuation_per_mm)
+    renderer = a.BiplaneRenderer(views, body, vessel=phantom, settings=imaging, seed=seed + robot_id)
+    track = a.PostureTracker(calibration, a.RecognitionSettings(dark_level=imaging.dark_level), body=spec)
+    frames = []
+    for i, pose in enumerate(accuracy.random_poses(np.random.default_rng([seed, robot_id]), poses_n)):
+        pair = renderer.render(pose)
+        track.reset()
+        recorder.clear()
+        posture = track.process(pair.images["p"], pair.images["q"], frame=2 * i + 1, t=0.0)
+        score = accuracy.score(posture.to_record(), pose, pair.head_mm, pair.tail_mm)
+        frame: dict[str, Any] = {"seed": seed, "pose": i, "score": score, "sigma_deg": None, "views": []}
+        if recorder.calls and recorder.calls[-1][2].axis_sigma_rad is not None:
+            feat_p, feat_q, rec = recorder.calls[-1]
+            frame["sigma_deg"] = math.degrees(rec.axis_sigma_rad)
+            frame["plane_angle_deg"] = rec.plane_angle_deg
+            for name, feat in (("p", feat_p), ("q", feat_q)):
+                head, tail = calibration.views[name].project(np.array([pair.head_mm, pair.tail_mm]))
+                l1, l2 = feat.eigenvalues
+                frame["views"].append({"err_deg": _line_angle_deg(feat.axis, head - tail),
+                                       "sigma_deg": math.degrees(feat.axis_sigma_rad),
+                                       "length_px": float(np.linalg.norm(feat.tips[0] - feat.tips[1])),
+                                       "pixels": feat.pixel_count, "elongated": l1 > 1.3 * l2,
+                                       "clutter": recorder.clutter.get(id(feat), (None, math.nan))[1]})
+        frames.append(frame)
+    return frames
+
+
+def _ratio_text(z: np.ndarray) -> str:
+    return (f"RMS {np.sqrt(np.mean(z ** 2)):.2f} median {np.median(z):.2f} p90 {np.percentile(z, 90):.2f} "
+            f"max {z.max():.2f}")
+
+
+def report(robot_id: int, frames: list[dict[str, Any]]) -> None:
+    views = [v for f in frames if f["score"]["ok"] for v in f["views"]
+             if v["elongated"] and v["clutter"] < CLEAN_CLUTTER]
+    print(f"robot {robot_id}: {len(frames)} frames, {len(views)} clean elongated views")
+    if views:
+        length = np.array([v["length_px"] for v in views])
+        err = np.radians([v["err_deg"] for v in views])
+        sigma = np.radians([v["sigma_deg"] for v in views])
+        for lo, hi in zip(LENGTH_BINS_PX[:-1], LENGTH_BINS_PX[1:]):
+            m = (length >= lo) & (length < hi)
+            if m.sum() >= 5:
+                print(f"  2D, length {lo:>3}-{hi:<5} px: {m.sum():4d} views, "
+                      f"|err|/sigma {_ratio_text(err[m] / sigma[m])}  (err RMS {math.degrees(np.sqrt(np.mean(err[m] ** 2))):.2f} deg)")
+        for c in LENGTH_FLOORS_RAD_PX:
+            z = err / np.hypot(sigma, c / length)
+            print(f"  2D with a floor {c:.2f}/L rad: |err|/sigma RMS {np.sqrt(np.mean(z ** 2)):.2f}, max {z.max():.2f}")
+    clean = [f for f in frames if f["score"]["ok"] and not f["score"]["ambiguous"] and f["sigma_deg"]
+             and f["score"]["axis_deg"] is not None]
+    if clean:
+        z = np.array([f["score"]["axis_deg"] / f["sigma_deg"] for f in clean])
+        print(f"  3D, {len(clean)} ok non-ambiguous frames: |err|/sigma {_ratio_text(z)}")
+    for f in frames:
+        s = f["score"]
+        if s["ok"] and not s["ambiguous"] and s["axis_deg"] is not None and s["axis_deg"] > accuracy.SILENT_AXIS_DEG:
+            sigma_text = "-" if f["sigma_deg"] is None else f"{f['sigma_deg']:.2f}"
+            print(f"  SILENT seed {f['seed']} pose {f['pose']}: axis {s['axis_deg']:.2f} deg, sigma {sigma_text} deg, "
+                  f"planes {f.get('plane_angle_deg', math.nan):.1f} deg; "
+                  + "; ".join(f"{n}: err {v['err_deg']:.2f} sigma {v['sigma_deg']:.2f} deg, L {v['length_px']:.1f} px, "
+                              f"{v['pixels']} px, clutter {v['clutter']:.3f}" for n, v in zip("pq", f["views"])))
+
+
+def _seeds(text: str) -> list[int]:
+    if "-" in text:
+        lo, hi = (int(x) for x in text.split("-"))
+        return list(range(lo, hi + 1))
+    return [int(x) for x in text.split(",")]
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--robots", default="4,2,7", help="comma-separated robot ids (default: the small ones)")
+    parser.add_argument("--seeds", default="1-20", help="seeds, 'a-b' or comma-separated (default 1-20)")
+    parser.add_argument("--poses", type=int, default=30, help="random poses per robot and seed (default 30)")
+    args = parser.parse_args(argv)
+    accuracy.warm_up_all()
+    recorder = _Recorder()
+    for robot_id in (int(r) for r in args.robots.split(",")):
+        frames = [f for seed in _seeds(args.seeds) for f in collect(robot_id, seed, args.poses, recorder)]
+        report(robot_id, frames)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
