@@ -17,7 +17,8 @@ Each repetition runs the rendered pairs through a fresh tracker given the robot'
 * pieces: each named method timed on its own pass (its clock reads subtracted, as measured back to back);
   a method the code does not have (the base it is compared with) is left out.
 
-Prints the medians and p99 (us) per row, the clock's own cost and the load; asserts nothing.
+Prints the medians, p99, p10 and minimum (us) per row (under load the low ones say most), the clock's own
+cost and the load; asserts nothing.
 
     .venv/bin/python benchmarks/steady_python.py [--pairs 40] [--repeat 8] [--size 1024] [--robot 1]
 """
@@ -127,7 +128,8 @@ def _run(chunk, calibration, settings, body, repeat, timed: list[_Timed], host, 
 
 def _row(name: str, values: list[float]) -> str:
     a = np.asarray(values)
-    return f"{name:<40} {np.median(a):8.1f} {np.percentile(a, 99):8.1f} {a.min():8.1f} {a.size:6d}"
+    return (f"{name:<40} {np.median(a):8.1f} {np.percentile(a, 99):8.1f} {np.percentile(a, 10):8.1f} {a.min():8.1f} "
+            f"{a.size:6d}")
 
 
 def main() -> None:
@@ -174,7 +176,7 @@ def main() -> None:
     print(f"steady pairs of {args.size}x{args.size}, robot {args.robot}, {args.pairs} pairs x {args.repeat}; "
           f"thread CPU, us; a clock read pair costs {clock_ns / 1e3:.2f} us (subtracted); "
           f"load {os.getloadavg()[0]:.2f}")
-    print(f"{'':<40} {'p50':>8} {'p99':>8} {'min':>8} {'n':>6}")
+    print(f"{'':<40} {'p50':>8} {'p99':>8} {'p10':>8} {'min':>8} {'n':>6}")
     for name, values in rows:
         if values and max(values) > 0.0:  # a method the steady path does not call is left out
             print(_row(name, values))
