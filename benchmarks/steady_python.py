@@ -7,8 +7,8 @@ with the thread's CPU clock (``time.thread_time_ns``) instead, on the frames and
 bench`` uses: 1024x1024 pairs rendered first, untimed; before each measured pair it arrives in two host
 buffers by ``np.copyto`` (the caches a new frame leaves).
 
-Each repetition runs the rendered pairs through a fresh tracker (the first pair is its cold start, not
-measured). Three passes, so no piece's clock reads sit inside another's figure:
+Each repetition runs the rendered pairs through a fresh tracker given the robot's body, as the bench's
+(the body prior places every ok posture; the first pair is its cold start, not measured). Three passes, so no piece's clock reads sit inside another's figure:
 
 * ``pair``: :meth:`PostureTracker.process` alone, one clock read either side;
 * ``kernel``: the same with the compiled call also timed: ``python`` is ``pair`` minus ``kernel``, for all
@@ -17,7 +17,8 @@ measured). Three passes, so no piece's clock reads sit inside another's figure:
 * pieces: each named method timed on its own pass (its clock reads subtracted, as measured back to back);
   a method the code does not have (the base it is compared with) is left out.
 
-Prints the medians and p99 (us) per row, the clock's own cost and the load; asserts nothing.
+Prints the medians, p99, p10 and minimum (us) per row (under load the low ones say most), the clock's own
+cost and the load; asserts nothing.
 
     .venv/bin/python benchmarks/steady_python.py [--pairs 40] [--repeat 8] [--size 1024] [--robot 1]
 """
@@ -46,6 +47,7 @@ PIECES = (
     (steady_state.SteadyPair, "plain_posture", "plain_posture (the Posture)"),
     (tracker_module.PostureTracker, "_remember", "_remember (the track)"),
     (tracker_module.PostureTracker, "_remember_plain", "_remember_plain (the track)"),
+    (tracker_module, "place_plain_body", "place_plain_body (the body prior)"),
 )
 
 
@@ -86,9 +88,10 @@ class _Timed:
         setattr(self.owner, self.name, self.real)
 
 
-def _run(chunk, calibration, settings, repeat, timed: list[_Timed], host, clock_ns,
+def _run(chunk, calibration, settings, body, repeat, timed: list[_Timed], host, clock_ns,
          plain: list[bool] | None = None) -> list[float]:
-    """``repeat`` passes of ``chunk`` through fresh trackers; per steady ROI pair, process()'s thread CPU (us)
+    """``repeat`` passes of ``chunk`` through fresh trackers given the robot's ``body`` (as ``appliance bench``
+    builds them: the body prior places every ok posture); per steady ROI pair, process()'s thread CPU (us)
     (and, into ``plain``, whether the pair was plain: :meth:`.SteadyPair.objects` not called)."""
     clock = time.thread_time_ns
     totals = []
@@ -101,7 +104,7 @@ def _run(chunk, calibration, settings, repeat, timed: list[_Timed], host, clock_
 
     steady_state.SteadyPair.objects = spy
     for _ in range(repeat):
-        tracker = PostureTracker(calibration, settings)
+        tracker = PostureTracker(calibration, settings, body=body)
         for n, (p, q) in enumerate(chunk):
             np.copyto(host[0], p)
             np.copyto(host[1], q)
@@ -125,7 +128,8 @@ def _run(chunk, calibration, settings, repeat, timed: list[_Timed], host, clock_
 
 def _row(name: str, values: list[float]) -> str:
     a = np.asarray(values)
-    return f"{name:<40} {np.median(a):8.1f} {np.percentile(a, 99):8.1f} {a.min():8.1f} {a.size:6d}"
+    return (f"{name:<40} {np.median(a):8.1f} {np.percentile(a, 99):8.1f} {np.percentile(a, 10):8.1f} {a.min():8.1f} "
+            f"{a.size:6d}")
 
 
 def main() -> None:
@@ -142,15 +146,15 @@ def main() -> None:
     settings = RecognitionSettings(dark_level=scene.dark_level)
     host = (np.empty_like(chunk[0][0]), np.empty_like(chunk[0][1]))
     clock_ns = _clock_cost_ns(time.thread_time_ns)
-    _run(chunk[:4], scene.calibration, settings, 1, [], host, clock_ns)  # any signature not yet compiled
+    _run(chunk[:4], scene.calibration, settings, scene.robot, 1, [], host, clock_ns)  # any signature not yet compiled
     rows = []
-    rows.append(("pair: process() (thread CPU)", _run(chunk, scene.calibration, settings, args.repeat, [], host,
-                                                       clock_ns)))
+    rows.append(("pair: process() (thread CPU)", _run(chunk, scene.calibration, settings, scene.robot, args.repeat,
+                                                       [], host, clock_ns)))
     kernel_samples: list[float] = []
     kernel = _Timed(steady_kernels, "search_pair", kernel_samples, clock_ns)
     plain: list[bool] = []
     try:
-        totals = _run(chunk, scene.calibration, settings, args.repeat, [kernel], host, clock_ns, plain)
+        totals = _run(chunk, scene.calibration, settings, scene.robot, args.repeat, [kernel], host, clock_ns, plain)
     finally:
         kernel.restore()
     python = [t - k for t, k in zip(totals, kernel_samples)]
@@ -165,14 +169,14 @@ def main() -> None:
         samples: list[float] = []
         piece = _Timed(owner, name, samples, clock_ns)
         try:
-            _run(chunk, scene.calibration, settings, args.repeat, [piece], host, clock_ns)
+            _run(chunk, scene.calibration, settings, scene.robot, args.repeat, [piece], host, clock_ns)
         finally:
             piece.restore()
         rows.append((label, samples))
     print(f"steady pairs of {args.size}x{args.size}, robot {args.robot}, {args.pairs} pairs x {args.repeat}; "
           f"thread CPU, us; a clock read pair costs {clock_ns / 1e3:.2f} us (subtracted); "
           f"load {os.getloadavg()[0]:.2f}")
-    print(f"{'':<40} {'p50':>8} {'p99':>8} {'min':>8} {'n':>6}")
+    print(f"{'':<40} {'p50':>8} {'p99':>8} {'p10':>8} {'min':>8} {'n':>6}")
     for name, values in rows:
         if values and max(values) > 0.0:  # a method the steady path does not call is left out
             print(_row(name, values))

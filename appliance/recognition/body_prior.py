@@ -35,11 +35,12 @@ as the cone's apex, :mod:`.head_by_body`: what reaches this unidentified, the bo
 
 Applied to the :class:`.Posture` (both the tracker's general path and the steady state's plain frames
 build one, to the last bit the same) by one compiled kernel (:func:`.body_kernels.place`, issue 8: as
-Python it cost a plain frame ~45 us), so both paths stay identical: :func:`place_body` for any posture,
-:func:`place_plain_body` for a plain frame's fresh one, placed in place without making its deferred tips
-and views. Python keeps only the postures and the reasons, made on the rare flagged frames. The posture's ``length_mm`` stays
-the measured length (the track's plausibility check compares it frame to frame) and its
-``reprojection_px`` that of the measured centroid and ends.
+Python it cost a plain frame ~45 us), so both paths stay identical: :func:`place_body` for any posture;
+a plain frame's is placed within the steady pair's compiled call (:func:`.steady_kernels._place_body`, the
+numbers :func:`place_body` would take of it: as a second call from Python it cost a plain frame ~20 us),
+and one the checks flag takes the general path. Python keeps only the postures and the reasons, made on
+the rare flagged frames. The posture's ``length_mm`` stays the measured length (the track's plausibility
+check compares it frame to frame) and its ``reprojection_px`` that of the measured centroid and ends.
 """
 from __future__ import annotations
 
@@ -212,25 +213,6 @@ def _floats(vector: np.ndarray) -> list[float]:
 
 
 _FLOAT64 = np.dtype(np.float64)
-
-
-def place_plain_body(packed: np.ndarray, posture: Posture, body: BodyModel, settings: RecognitionSettings,
-                     track: tuple, clutter: tuple[float, float], axis_sigma_rad: float) -> Posture:
-    """:func:`place_body` on a steady-state plain frame's fresh posture (:meth:`.SteadyPair.plain_posture`,
-    not yet seen by anyone), placed in place: the same kernel on the same numbers, so the same posture to
-    the last bit, without reading its deferred tips and views (they stay for the record to make).
-    ``packed``: the calibration's :attr:`.Calibration.packed` (the tracker holds it: not looked up again).
-
-    ``track``: :attr:`.SteadyPair.plain_track` of the same call (the posture's centroid, direction and
-    length, and per view its centroid and tips in pixels, the posture's order); ``clutter``: each view's
-    :attr:`.Blob.clutter` and ``axis_sigma_rad`` the axis' sigma (:meth:`.SteadyPair.body_inputs`). A
-    plain frame has its head identified, both views and no end measured over another structure."""
-    if settings.estimator == "paper":
-        return posture
-    (c, d, length, p, q) = track
-    numbers = [*c, *d, 1.0, *p[:6], clutter[0], 0.0, 0.0, 1.0, *q[:6], clutter[1], 0.0, 0.0,
-               length, axis_sigma_rad, settings.max_clutter, 1.0]
-    return _apply(packed, posture, body, numbers)
 
 
 def _apply(packed: np.ndarray, placed: Posture, body: BodyModel, numbers: list[float]) -> Posture:

@@ -27,7 +27,7 @@ import numpy as np
 
 from appliance.compiled import kernel, register_warm_up
 from appliance.geometry_kernels import VIEW_SIZE, project_point, project_segment
-from appliance.recognition import reconstruction_kernels, roi_kernels, view_kernels
+from appliance.recognition import body_kernels, reconstruction_kernels, roi_kernels, view_kernels
 
 #: Status of :func:`search_pair`.
 PAIR_FOUND = 0  # both views found; the front's status is at OUT_FRONT_STATUS
@@ -63,7 +63,10 @@ FRONT_SETTINGS = 7  # ambiguity_px ... tip_rim_fraction
 IN_FINISH = IN_FRONT + FRONT_SETTINGS
 FINISH_SETTINGS = 5
 IN_SOURCES = IN_FINISH + FINISH_SETTINGS
-IN_SIZE = IN_SOURCES + 8
+#: The robot's body for the body prior on a plain frame (see _place_body): 1 if the tracker knows it, then its
+#: numbers in :mod:`.body_kernels`' ``B_*`` layout (:attr:`.BodyModel.packed`).
+IN_BODY = IN_SOURCES + 8
+IN_SIZE = IN_BODY + 1 + body_kernels.B_SIZE
 
 #: Layout of the output array: per view (``OUT_VIEW + view * OUT_VIEW_SIZE``) search_view's output
 #: (``roi_kernels`` layout, ``SEARCH_SIZE`` numbers), then the view's ROI ``x0, y0, x1, y1`` and its
@@ -88,7 +91,10 @@ P_LENGTH = 13
 P_REPROJECTION = 14
 P_VIEW_TIPS = 15
 POSTURE_SIZE = 23
-OUT_SIZE = OUT_POSTURE + POSTURE_SIZE
+#: The plain frame's posture placed by the known body (see _place_body): :func:`.body_kernels.place`'s output
+#: (its ``OUT_*`` layout; ``OUT_PLACED`` 0 where the body is not known or the frame is not plain).
+OUT_BODY = OUT_POSTURE + POSTURE_SIZE
+OUT_SIZE = OUT_BODY + body_kernels.OUT_SIZE
 
 
 @kernel
@@ -576,6 +582,43 @@ def _finish(out, inp, G):  # pragma: no cover - compiled
 
 
 @kernel
+def _place_body(out, inp, G):  # pragma: no cover - compiled
+    """The body prior on a plain frame's posture into ``out[OUT_BODY:]``: :func:`.body_kernels.place` on the
+    numbers :func:`.body_prior.place_body` takes of that posture (its centroid and direction, per view its
+    centroid, tips and clutter, no end measured (a plain frame has no clutter to measure them for), the
+    measured length, the front's axis sigma, ``max_clutter`` and the head identified), where the body is known
+    and the frame is plain; in the same call, so a plain frame's Python makes no second call nor its arrays
+    (issue 8)."""
+    B = body_kernels
+    placed = out[OUT_BODY:OUT_BODY + B.OUT_SIZE]
+    placed[B.OUT_PLACED] = 0.0
+    placed[B.OUT_FLAG] = B.FLAG_NONE
+    P = OUT_POSTURE
+    if inp[IN_BODY] == 0.0 or out[P + P_PLAIN] != 1.0:
+        return
+    b = np.empty(B.IN_SIZE)
+    for i in range(3):
+        b[B.IN_CENTROID + i] = out[P + P_CENTROID + i]
+        b[B.IN_DIRECTION + i] = out[P + P_DIRECTION + i]
+    for view in range(2):
+        i = B.IN_VIEW + view * B.IN_VIEW_SIZE
+        o = OUT_VIEW + view * OUT_VIEW_SIZE
+        k = P + P_VIEW_TIPS + 4 * view
+        b[i + B.V_PRESENT] = 1.0
+        c = o + roi_kernels.CENTROID
+        b[i + B.V_CENTROID], b[i + B.V_CENTROID + 1] = out[c], out[c + 1]
+        for j in range(4):
+            b[i + B.V_TIPS + j] = out[k + j]
+        b[i + B.V_CLUTTER] = out[o + roi_kernels.REFINED + 11]
+        b[i + B.V_ENDS], b[i + B.V_ENDS + 1] = 0.0, 0.0
+    b[B.IN_MEASURED] = out[P + P_LENGTH]
+    b[B.IN_AXIS_SIGMA] = out[OUT_FRONT + reconstruction_kernels.OUT_SIGMA]
+    b[B.IN_MAX_CLUTTER] = inp[IN_FINISH]
+    b[B.IN_HEAD_IDENTIFIED] = 1.0
+    B.place(G, b, inp[IN_BODY + 1:IN_BODY + 1 + B.B_SIZE], placed)
+
+
+@kernel
 def search_pair(image_p, image_q, coarse_p, coarse_q, log_table, g, params, ring_outer, ring_inner, near_hw,
                 levels, search_settings, G, inp, prev, out):  # pragma: no cover - compiled
     """Both views' steady-state search and the reconstruction's front (see the module docstring).
@@ -661,6 +704,7 @@ def search_pair(image_p, image_q, coarse_p, coarse_q, log_table, g, params, ring
         inp[f], inp[f + 1], inp[f + 2], inp[f + 3], inp[f + 4], inp[f + 5], inp[f + 6], front)
     out[OUT_FRONT_STATUS] = status
     _finish(out, inp, G)
+    _place_body(out, inp, G)
     return PAIR_FOUND, w_p, m_p, w_q, m_q
 
 
@@ -690,6 +734,7 @@ def warm_up() -> None:
     inp[IN_FRONT:IN_FRONT + FRONT_SETTINGS] = [3.0, 4.0, 12.0, 1.3, 0.001, 0.7, 0.25]
     inp[IN_FINISH:IN_FINISH + FINISH_SETTINGS] = [0.15, 20.0, 0.25, 6.0, 0.5]
     inp[IN_SOURCES:IN_SOURCES + 8] = [0.0, 0.0, -500.0, 400.0, 500.0, 0.0, 0.0, 400.0]
+    inp[IN_BODY:IN_BODY + 1 + body_kernels.B_SIZE] = [1.0, 2.0, 0.9, 0.5, 0.5]
     frozen = image.copy()
     frozen.flags.writeable = False
     for frame in (image, frozen):

@@ -28,9 +28,11 @@ from typing import Any
 import numpy as np
 
 from appliance.geometry import Calibration
+from appliance.recognition import body_kernels as bk
 from appliance.recognition import reconstruction_kernels as rk
 from appliance.recognition import roi_kernels, view_kernels
 from appliance.recognition import steady_kernels as sk
+from appliance.recognition.body_prior import BodyModel
 from appliance.recognition.features import _LEVELS_ARRAY, Features2D, clutter_axis_sigma_rad
 from appliance.recognition.plausibility import _view_scalars
 from appliance.recognition.posture import Posture, ViewObservation
@@ -50,7 +52,7 @@ class SteadyPair:
     for the record, written after the command.
     """
 
-    def __init__(self, calibration: Calibration, settings: RecognitionSettings) -> None:
+    def __init__(self, calibration: Calibration, settings: RecognitionSettings, body: BodyModel | None = None) -> None:
         self.settings = settings
         self._G = calibration.packed
         (self._table, detect_sigma, floor, min_pixels, self._params, self._ring_outer, self._ring_inner, self._near,
@@ -69,6 +71,15 @@ class SteadyPair:
             s.head_foreshortening]
         sources = _view_scalars(calibration)
         self._inp[sk.IN_SOURCES:sk.IN_SOURCES + 8] = [*sources["p"], *sources["q"]]
+        #: Whether the call places a plain frame's posture by the robot's body (:func:`.steady_kernels._place_body`,
+        #: :func:`.body_prior.place_plain_body`'s numbers; the paper's estimator keeps its postures verbatim).
+        self._body = body is not None and s.estimator != "paper"
+        if self._body:
+            assert body is not None
+            self._inp[sk.IN_BODY] = 1.0
+            self._inp[sk.IN_BODY + 1:sk.IN_BODY + 1 + bk.B_SIZE] = body.packed
+        #: The backgrounds whose factors (and images' shape) the input holds (search writes them when they change).
+        self._written: tuple[LogBackground | None, LogBackground | None] = (None, None)
         self._calibration = calibration
         #: The input's per-frame numbers, written in place (search).
         self._frame_input = memoryview(self._inp)
@@ -84,7 +95,7 @@ class SteadyPair:
         self._tips_band_px = float(s.tips_band_px)
         #: Output arrays with what a plain posture is made of each (see _new_output), reused where nothing
         #: else holds any of them (see _output).
-        self._outputs = [_new_output() for _ in range(_OUTPUTS)]
+        self._outputs = [_new_output(self._body) for _ in range(_OUTPUTS)]
         self._next_slot = 0
         self._centroid_mm: np.ndarray | None = None
         self._direction: np.ndarray | None = None
@@ -141,8 +152,7 @@ class SteadyPair:
         else:
             m[10], m[11], m[12] = previous
             m[13] = 1.0
-        for v, outline, known, bg, image in ((_IN_P, outline_p, known_p, bg_p, image_p),
-                                             (_IN_Q, outline_q, known_q, bg_q, image_q)):
+        for v, outline, known in ((_IN_P, outline_p, known_p), (_IN_Q, outline_q, known_q)):
             if outline is None:
                 m[v] = m[v + 1] = m[v + 2] = m[v + 3] = m[v + 4] = m[v + 5] = m[v + 6] = m[v + 7] = 0.0
             else:
@@ -150,9 +160,14 @@ class SteadyPair:
                 m[v + 1], m[v + 2], m[v + 3], m[v + 4], m[v + 5], m[v + 6], m[v + 7] = outline
             m[v + 8] = known
             m[v + 9] = 1.0 if lean and known > 0.0 else 0.0
-            m[v + 10] = bg.fy
-            m[v + 11] = bg.fx
-            m[v + 12], m[v + 13] = image.shape
+        written = self._written
+        if bg_p is not written[0] or bg_q is not written[1]:
+            # A new full-frame background (and with it the frames' shape): its factors, kept until the next.
+            for v, bg, image in ((_IN_P, bg_p, image_p), (_IN_Q, bg_q, image_q)):
+                m[v + 10] = bg.fy
+                m[v + 11] = bg.fx
+                m[v + 12], m[v + 13] = image.shape
+            self._written = (bg_p, bg_q)
         out, self._centroid_mm, self._direction, self._rest = self._output()
         status, w_p, m_p, w_q, m_q = sk.search_pair(image_p, image_q, bg_p.coarse, bg_q.coarse, *self._fixed,
                                                     self._no_previous if lean_from is None else lean_from, out)
@@ -176,20 +191,13 @@ class SteadyPair:
             if (sys.getrefcount(entry[0]) == 5 and sys.getrefcount(entry[1]) == 2
                     and sys.getrefcount(entry[2]) == 2 and sys.getrefcount(entry[3]) == 2):
                 return entry
-        entry = outputs[self._next_slot] = _new_output()
+        entry = outputs[self._next_slot] = _new_output(self._body)
         self._next_slot = (self._next_slot + 1) % _OUTPUTS
         return entry
 
     def sigmas(self) -> tuple[float, float]:
         """The noise sigma each view of the last call used."""
         return _SIGMAS.unpack_from(self.out)  # type: ignore[return-value]
-
-    def body_inputs(self) -> tuple[dict[str, float], float]:
-        """What :func:`.body_prior.place_body` takes of the last call: each view's :attr:`.Blob.clutter` (what
-        its blob would carry) and the 3D axis' sigma (rad, the front's, as the reconstruction keeps it)."""
-        o, r = sk.OUT_VIEW_SIZE, roi_kernels.REFINED + 11
-        return ({"p": float(self.out[r]), "q": float(self.out[o + r])},
-                float(self.out[sk.OUT_FRONT + rk.OUT_SIGMA]))
 
     def objects(self) -> tuple[tuple[Blob, Blob], tuple[Features2D, Features2D], int | None, np.ndarray]:
         """The last call's blobs and features, the front's status (None where the compiled axis uncertainty
@@ -212,17 +220,26 @@ class SteadyPair:
         """The last call's posture where its frame is plain (:func:`.steady_kernels._finish`) and passes the
         checks that stay in Python (the centroids' and tips' epipolar bands, the axis uncertainty); None
         otherwise (the tracker then decides on the objects, :meth:`objects`). The same posture as the
-        tracker builds, to the last bit; its tips and views are made when first read (:class:`_PlainRest`).
-        ``timings_us`` becomes its :attr:`.Posture.timings_us` (a new dict if None). Where it returns a
-        posture, :attr:`plain_track` is what the tracker remembers of it."""
+        tracker builds, to the last bit, with the robot's body placed where the pair was given one (in the
+        call: :func:`.steady_kernels._place_body`; a placement the body prior flags is left to the tracker's
+        path too); its tips and views are made when first read (:class:`_PlainRest`). ``timings_us`` becomes
+        its :attr:`.Posture.timings_us` (a new dict if None). Where it returns a posture, :attr:`plain_track`
+        is what the tracker remembers of it."""
         out = self.out
         # The numbers this needs as Python floats, in one read (the layout's order; see _PLAIN_READ).
         (peak_p, strength_p, clutter_p, count_p, cu_p, cv_p, l1_p, l2_p, axis_p, kernel_axis_p,
          peak_q, strength_q, clutter_q, count_q, cu_q, cv_q, l1_q, l2_q, axis_q, kernel_axis_q,
          rms_a, rms_b, plane_angle, epipolar, sigma, plain, x, y, z, d0, d1, d2, length, reprojection,
-         tu0_p, tv0_p, tu1_p, tv1_p, tu0_q, tv0_q, tu1_q, tv1_q) = _PLAIN_READ.unpack_from(out)
+         tu0_p, tv0_p, tu1_p, tv1_p, tu0_q, tv0_q, tu1_q, tv1_q,
+         placed_x, placed_y, placed_z, placed, flag) = _PLAIN_READ.unpack_from(out)
         if plain != 1.0:
             return None
+        if self._body:
+            # The body prior's posture: its centroid (which the track follows) and tips, where it placed the
+            # body without doubt (a flag's reason is the tracker path's to write).
+            if placed != 1.0 or flag != bk.FLAG_NONE:
+                return None
+            x, y, z = placed_x, placed_y, placed_z
         # The kernel's axis uncertainty must be Python's (see objects: roi_search.blob_and_features' hypot of
         # the pixel noise's and the clutter's terms; the clutter term is 0.0 without clutter), and the
         # front's checks pass.
@@ -248,11 +265,13 @@ class SteadyPair:
         }, self._rest)
 
 
-def _new_output() -> tuple[np.ndarray, np.ndarray, np.ndarray, _PlainRest]:
-    """An output array of the pair call, its views that a plain posture's centroid and direction are, and
-    what makes the rest of that posture (:class:`_PlainRest`)."""
+def _new_output(body: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray, _PlainRest]:
+    """An output array of the pair call, its views that a plain posture's centroid and direction are (the
+    centroid the body placed where ``body``), and what makes the rest of that posture (:class:`_PlainRest`)."""
     out = np.empty(sk.OUT_SIZE)
-    return out, out[_P_CENTROID:_P_CENTROID + 3], out[_P_DIRECTION:_P_DIRECTION + 3], _PlainRest(out)
+    centroid = _B_CENTROID if body else _P_CENTROID
+    return (out, out[centroid:centroid + 3], out[_P_DIRECTION:_P_DIRECTION + 3],
+            _PlainRest(out, _B_TIPS if body else _P_TIPS))
 
 
 def _reader(indices: tuple[int, ...]) -> struct.Struct:
@@ -284,30 +303,34 @@ _P_CENTROID = sk.OUT_POSTURE + sk.P_CENTROID
 _P_DIRECTION = sk.OUT_POSTURE + sk.P_DIRECTION
 _P_TIPS = sk.OUT_POSTURE + sk.P_TIPS
 _P_VIEW_TIPS = sk.OUT_POSTURE + sk.P_VIEW_TIPS
+_B_CENTROID = sk.OUT_BODY + bk.OUT_CENTROID
+_B_TIPS = sk.OUT_BODY + bk.OUT_TIPS
 #: The noise sigma of each view.
 _SIGMAS = _reader((roi_kernels.SIGMA, sk.OUT_VIEW_SIZE + roi_kernels.SIGMA))
 #: What plain_posture reads, in the order it unpacks it: per view the clutter term's inputs, the centroid,
 #: the eigenvalues, the noise's axis term and the kernel's axis uncertainty; the front's pairing RMS,
 #: plane angle, centroid epipolar distance and axis sigma; the posture's plain flag, centroid, direction,
-#: length, reprojection and each view's tips.
+#: length, reprojection and each view's tips; the body's placed centroid, whether it placed it and its flag.
 _PLAIN_READ = _reader(tuple(
     [o + i for o in (0, sk.OUT_VIEW_SIZE) for i in (_R + 4, _R + 6, _R + 11, _R + 12, _C, _C + 1, _E, _E + 1,
                                                    roi_kernels.AXIS_SIGMA, sk.R_AXIS_SIGMA)]
     + [sk.OUT_FRONT + i for i in (rk.OUT_RMS_A, rk.OUT_RMS_B, rk.OUT_PLANE_ANGLE, rk.OUT_CENTROID_EPIPOLAR,
                                   rk.OUT_SIGMA)]
     + [sk.OUT_POSTURE + sk.P_PLAIN, *range(_P_CENTROID, _P_CENTROID + 3), *range(_P_DIRECTION, _P_DIRECTION + 3),
-       sk.OUT_POSTURE + sk.P_LENGTH, sk.OUT_POSTURE + sk.P_REPROJECTION, *range(_P_VIEW_TIPS, _P_VIEW_TIPS + 8)]))
+       sk.OUT_POSTURE + sk.P_LENGTH, sk.OUT_POSTURE + sk.P_REPROJECTION, *range(_P_VIEW_TIPS, _P_VIEW_TIPS + 8)]
+    + [*range(_B_CENTROID, _B_CENTROID + 3), sk.OUT_BODY + bk.OUT_PLACED, sk.OUT_BODY + bk.OUT_FLAG]))
 
 
 class _PlainRest:
     """A plain posture's tips and two :class:`.ViewObservation`, made from the call's output when first
-    read (:meth:`.Posture.deferred`): the tips as the call placed them, the views as the tracker's
-    ``_posture`` makes them from the reconstruction."""
+    read (:meth:`.Posture.deferred`): the tips as the call placed them (at ``tips``: the reconstruction's, or
+    the body prior's), the views as the tracker's ``_posture`` makes them from the reconstruction."""
 
-    __slots__ = ("out",)
+    __slots__ = ("out", "tips")
 
-    def __init__(self, out: np.ndarray) -> None:
+    def __init__(self, out: np.ndarray, tips: int) -> None:
         self.out = out
+        self.tips = tips
 
     def __call__(self) -> dict[str, Any]:
         out = self.out
@@ -325,4 +348,4 @@ class _PlainRest:
                 "centroid_px": out[c:c + 2], "tips_px": tips, "axis": axis,
                 "pixel_count": int(numbers[v + roi_kernels.REFINED + 12]), "eigenvalues": (numbers[e], numbers[e + 1]),
                 "head_index": 0})
-        return {"tips_mm": out[_P_TIPS:_P_TIPS + 6].reshape(2, 3), "views": views}
+        return {"tips_mm": out[self.tips:self.tips + 6].reshape(2, 3), "views": views}

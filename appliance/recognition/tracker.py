@@ -21,8 +21,8 @@ A head claimed by one view alone, over another structure, whose profiles' eviden
 Where the robot's body is known, a head left unidentified, or claimed over another structure, is told by the
 body's shape where that is decisive (``_head_by_body``, :mod:`.head_by_body`).
 A tracker given the robot's body (``body=``, with ``settings.body_prior``) places the centroid and tips
-of every ok posture by it (:func:`.body_prior.place_body`; on the plain frames' postures, in place,
-:func:`.body_prior.place_plain_body`: the same compiled arithmetic on the same numbers).
+of every ok posture by it (:func:`.body_prior.place_body`; on the plain frames' postures within the pair's
+compiled call, :func:`.steady_kernels._place_body`: the same compiled arithmetic on the same numbers).
 """
 from __future__ import annotations
 
@@ -41,7 +41,7 @@ from appliance.geometry import (
     triangulate,
 )
 from appliance.geometry_kernels import project_segment
-from appliance.recognition.body_prior import BodyModel, end_clutter, ends_used, place_body, place_plain_body
+from appliance.recognition.body_prior import BodyModel, end_clutter, ends_used, place_body
 from appliance.recognition.correspondence import pair_candidates, pairing_rms
 from appliance.recognition.detection import detect
 from appliance.recognition.features import Features2D, features
@@ -156,8 +156,9 @@ class PostureTracker:
         #: Each view's image shape (rows, columns) as the calibration gives it (process's input check).
         self._shapes = tuple((view.image_size[1], view.image_size[0]) for view in (calibration.p, calibration.q))
         #: The steady state's one compiled call per pair, and its output for the last frame if that one was
-        #: found by it and remembered (what the lean pass starts from).
-        self._pair = SteadyPair(calibration, self.settings)
+        #: found by it and remembered (what the lean pass starts from). It places the plain frames' postures
+        #: by the body.
+        self._pair = SteadyPair(calibration, self.settings, self.body)
         self._lean_from: np.ndarray | None = None
         self._log_bg: dict[str, LogBackground] = {}
         self._track: _Track | None = None
@@ -201,15 +202,10 @@ class PostureTracker:
                 start = time.perf_counter_ns()
                 plain = pair.plain_posture(frame, t, timings)
                 if plain is not None:
-                    # A plain frame: the posture the decisions below make, built from the call's numbers.
-                    placed = None
-                    if self.body is not None:
-                        clutter, axis_sigma = pair.body_inputs()
-                        plain = place_plain_body(self._packed, plain, self.body, self.settings, pair.plain_track,
-                                                 (clutter["p"], clutter["q"]), axis_sigma)
-                        placed = plain.centroid_mm
+                    # A plain frame: the posture the decisions below make (and the body prior, where the
+                    # tracker has a body), built from the call's numbers.
                     timings["triangulation"] = (time.perf_counter_ns() - start) / 1e3
-                    self._remember_plain(t, plain.direction, placed)
+                    self._remember_plain(t, plain.direction)
                     self._lean_from = pair.out
                     return plain
                 (blob_p, blob_q), (feat_p, feat_q), status, out = pair.objects()
@@ -678,16 +674,13 @@ class PostureTracker:
                              velocity, view_outline_px=outline,
                              direction_xyz=None if direction is None else tuple(direction.tolist()))
 
-    def _remember_plain(self, t: float, direction: np.ndarray, placed_centroid: np.ndarray | None = None) -> None:
+    def _remember_plain(self, t: float, direction: np.ndarray) -> None:
         """:meth:`_remember` of the steady pair's plain posture at ``t`` (``direction`` its direction), from
-        the call's numbers (:attr:`.SteadyPair.plain_track`: the same floats as the posture's fields), the
-        track updated in place. ``placed_centroid``: the centroid the body prior moved the posture to (it
-        changes only the centroid and the tips), which the track follows as :meth:`_remember` does."""
+        the call's numbers (:attr:`.SteadyPair.plain_track`: the same floats as the posture's fields, the
+        centroid the body prior placed included), the track updated in place."""
         track = self._track
         assert track is not None
         centroid, direction_xyz, length, outline_p, outline_q = self._pair.plain_track
-        if placed_centroid is not None:
-            centroid = (float(placed_centroid[0]), float(placed_centroid[1]), float(placed_centroid[2]))
         if track.lost_frames == 0 and t > track.t:
             dt = t - track.t
             (x, y, z), (ox, oy, oz) = centroid, track.centroid

@@ -141,8 +141,8 @@ def test_most_tracked_frames_are_plain(views: dict[str, object], calibration: Ca
 def test_a_plain_frame_is_placed_without_making_its_deferred_tips_and_views(views: dict[str, object],
                                                                              calibration: Calibration,
                                                                              monkeypatch: pytest.MonkeyPatch) -> None:
-    # The body prior places a plain frame's fresh posture in place (body_prior.place_plain_body): its tips
-    # and views stay for the record to make, and when made they do not undo the placed tips.
+    # The body prior places a plain frame's posture within the pair's compiled call (steady_kernels._place_body):
+    # its tips and views stay for the record to make, and when made they are the placed tips.
     spec = load_robots()[1]
     body = RobotBody(spec.length_mm, spec.diameter_mm, spec.tip_angle_deg, spec.attenuation_per_mm)
     renderer = BiplaneRenderer(views, body, settings=ImagingSettings(), seed=1)
