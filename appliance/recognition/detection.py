@@ -48,7 +48,8 @@ def detect(image: np.ndarray, background: LogBackground, settings: RecognitionSe
                                                              table)
             if sigma < 0:
                 sigma = None
-        for blob in segment(image, background, roi, settings, sigma=sigma, region_attenuation=a):
+        for blob in segment(image, background, roi, settings, sigma=sigma, region_attenuation=a,
+                            touching_bodies=True):
             # Neighbouring coarse components may hold the same body.
             if all(math.hypot(blob.centroid_px[0] - b.centroid_px[0], blob.centroid_px[1] - b.centroid_px[1]) > 2.0
                    for b in blobs):
