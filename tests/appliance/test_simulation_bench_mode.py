@@ -57,12 +57,12 @@ def test_run_steers_on_a_serial_amplifier_and_played_back_frames(tmp_path: Path,
     fake = make_default_fake()
     with PtyServer(fake) as server:
         session = bench_session(tmp_path, frame_folder, server.path)
-        code = main(["run", "--config", str(session), "--seconds", "1", "--out", str(tmp_path / "out")])
+        code = main(["run", "--config", str(session), "--seconds", "3", "--out", str(tmp_path / "out")])
         text = capsys.readouterr().out
         assert code == 0, text
         time.sleep(0.1)               # the stop cut the output: the coils decay with L/R = 10 ms
         state = fake.snapshot()
-    assert "stopped: time limit of 1 s" in text and "ramped to zero and disabled" in text
+    assert "stopped: time limit of 3 s" in text and "ramped to zero and disabled" in text
     assert not state.output_on and max(abs(state.measured_a)) < 0.05
     assert any(any(command.target_ma) for command in fake.applied)   # it did drive the coils
     reader = RecordingReader(tmp_path / "out" / "session.mcap")
