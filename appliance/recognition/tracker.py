@@ -41,6 +41,7 @@ from appliance.geometry import (
     triangulate,
 )
 from appliance.geometry_kernels import project_segment
+from appliance.recognition.axis_by_length import fit_in_plane
 from appliance.recognition.body_prior import BodyModel, end_clutter, ends_used, place_body
 from appliance.recognition.correspondence import pair_candidates, pairing_rms
 from appliance.recognition.detection import detect
@@ -54,7 +55,8 @@ from appliance.recognition.plausibility import (
     off_its_images,
 )
 from appliance.recognition.posture import Posture, ViewObservation
-from appliance.recognition.reconstruction import Reconstruction, reconstruct, reconstruct_from_front
+from appliance.recognition import reconstruction_kernels
+from appliance.recognition.reconstruction import Reconstruction, axis_plane, reconstruct, reconstruct_from_front
 from appliance.recognition.roi_search import _frozen, find_in_roi
 from appliance.recognition.segmentation import (
     Blob,
@@ -245,6 +247,7 @@ class PostureTracker:
             posture.timings_us = timings
             return posture
         rec = self._head_by_body(rec, blobs, feats, previous)
+        rec = self._axis_by_length(rec, blobs)
         rec = declutter(self.calibration, rec, blobs, self.settings)
         posture = self._posture(frame, t, rec, blobs)
         if self.body is not None:
@@ -599,6 +602,61 @@ class PostureTracker:
         redone.reasons.append(f"the head is told by the body's shape: measured as the cone's apex, that end puts "
                               f"the body where the rest of it is (chi-square {best:.1f} against {other:.1f})")
         return redone
+
+    def _axis_by_length(self, rec: Reconstruction, blobs: dict[str, Blob]) -> Reconstruction:
+        """The axis within an epipolar plane refitted by the known body (:mod:`.axis_by_length`) where the
+        measured length is off the body's by more than ``settings.plane_length_tolerance``.
+
+        Near an epipolar plane (``settings.min_plane_angle_deg``) the axis planes fix nothing within it and the
+        direction there is the triangulated tips': an end run on into another structure turns it (standing
+        seed 1234567, robot 6, pose 6: 40 mm measured against 30, 6.5 deg off). The body, its head where
+        the reconstruction put it, is fitted with its axis turned in the plane; the best fit is taken if it
+        fits within ``settings.head_body_fit`` per degree of freedom, and otherwise the frame is reported
+        without an axis (as an unresolved mirror ambiguity), since the measured one is known to be wrong.
+        """
+        body = self.body
+        s = self.settings
+        if (body is None or s.estimator == "paper" or rec.direction is None or not rec.head_identified
+                or rec.length_mm is None or rec.plane_angle_deg >= s.min_plane_angle_deg
+                or abs(rec.length_mm - body.length_mm) <= s.plane_length_tolerance * body.length_mm):
+            return rec
+        feats = rec.view_features
+        head_index = {name: feat.head_index for name, feat in feats.items()}
+        if any(index is None for index in head_index.values()):
+            return rec
+        n_p = axis_plane(self.calibration.p, feats["p"])[:3]
+        n_q = axis_plane(self.calibration.q, feats["q"])[:3]
+        normal = n_p + (1.0 if float(n_p @ n_q) >= 0 else -1.0) * n_q
+        normal = normal / np.linalg.norm(normal)
+        clutter = {name: blob.clutter for name, blob in blobs.items()}
+        fit = fit_in_plane(self.calibration, rec.centroid, rec.direction, normal, feats, head_index,  # type: ignore[arg-type]
+                           clutter, body, s.head_body_cap)
+        dof = 2 * fit.measurements - 6
+        turned = math.degrees(math.acos(min(1.0, abs(float(fit.direction @ rec.direction)))))
+        if fit.chi2 > s.head_body_fit * dof:
+            reasons = rec.reasons + [
+                f"no axis: it lies within {rec.plane_angle_deg:.1f} deg of an epipolar plane and its ends put the body "
+                f"{rec.length_mm:.1f} mm long (the body is {body.length_mm:g} mm), and no direction in the plane "
+                f"fits the body (chi-square {fit.chi2:.1f} for {dof} degrees of freedom)"]
+            return replace(rec, direction=None, tips=None, head_identified=False, length_mm=None,
+                           reprojection_px=None, ambiguous=True, reasons=reasons, candidates=[rec.direction],
+                           view_tips={name: feat.tips for name, feat in feats.items()},
+                           view_features={name: replace(feat, head_index=None) for name, feat in feats.items()})
+        placed = np.empty(reconstruction_kernels.TIPS_SIZE)
+        reconstruction_kernels.place_tips(self._packed, fit.centroid, fit.direction, feats["p"].tips, head_index["p"],
+                                          feats["q"].tips, head_index["q"], feats["p"].centroid, feats["q"].centroid,
+                                          placed)
+        points = reconstruction_kernels.TIPS_POINTS
+        tips = placed[points:points + 6].reshape(2, 3).copy()
+        length, reprojection = placed[reconstruction_kernels.TIPS_LENGTH:
+                                      reconstruction_kernels.TIPS_REPROJECTION + 1].tolist()
+        reasons = rec.reasons + [
+            f"the axis is turned {turned:.1f} deg in the epipolar plane by the body: its ends put it "
+            f"{rec.length_mm:.1f} mm long (the body is {body.length_mm:g} mm; fit chi-square {fit.chi2:.1f} "
+            f"against {fit.chi2_at_start:.1f} as measured)"]
+        return replace(rec, centroid=fit.centroid, direction=fit.direction, tips=tips, length_mm=length,
+                       reprojection_px=reprojection if math.isfinite(reprojection) else None, ambiguous=True,
+                       reasons=reasons)
 
     # ------------------------------------------------------------------------------------ results
     def _posture(self, frame: int, t: float, rec: Reconstruction, blobs: dict[str, Blob]) -> Posture:
