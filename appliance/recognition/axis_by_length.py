@@ -14,8 +14,8 @@ points on each view's rays (its ends measured as the cone's apex and the flat ta
 small linear least-squares; each measurement's misfit is weighed by its noise (the clean sigma and, over
 another structure, ``CLUTTER_FRACTION`` of the clutter times the cone's length, the diameter (a flat end) or
 the body's length (the moment centroid, which the structure's mass slides along the axis), as in
-:mod:`.head_by_body`) and capped, so that one end run on into a vessel cannot pull the fit. :func:`fit_in_plane`
-scans the directions in the plane and returns the best; the tracker takes it where it fits well, and otherwise
+:mod:`.head_by_body`) and capped, so that one end run on into a vessel cannot pull the fit. :class:`PlaneScan`
+scans the directions in the plane for the best; the tracker takes it where it fits well, and otherwise
 reports the frame without an axis rather than with a wrong one.
 """
 from __future__ import annotations
@@ -36,6 +36,7 @@ from appliance.recognition.head_by_body import CLUTTER_FRACTION
 SCAN_HALF_RANGE_DEG = 30.0
 SCAN_STEP_DEG = 0.5
 REFINE_STEP_DEG = 0.05
+CURVATURE_STEP_DEG = 1.0
 #: Rounds of refitting without the measurements the last fit put beyond the cap.
 TRIM_ROUNDS = 3
 
@@ -43,13 +44,16 @@ TRIM_ROUNDS = 3
 @dataclass(frozen=True)
 class PlaneFit:
     """The body's best place with its axis in the plane: its direction (tail to head), its moment centroid (mm),
-    the capped chi-square there and at the reconstruction's own direction, and the measurements fitted."""
+    the capped chi-square there and at the reconstruction's own direction, the measurements fitted, and how
+    well the fit pins the direction in the plane (deg: where the chi-square rises by one, from its curvature
+    over ``CURVATURE_STEP_DEG`` either side)."""
 
     direction: np.ndarray
     centroid: np.ndarray
     chi2: float
     chi2_at_start: float
     measurements: int
+    sigma_deg: float
 
 
 def _measurements(calibration: Calibration, centroid: np.ndarray, feats: dict[str, Features2D],
@@ -82,53 +86,68 @@ def _measurements(calibration: Calibration, centroid: np.ndarray, feats: dict[st
     return o, r, np.asarray(offsets), across, 1.0 / np.square(sigmas)
 
 
-def _fit_centroid(direction: np.ndarray, origins: np.ndarray, offsets: np.ndarray, across: np.ndarray,
-                  weights: np.ndarray, cap: float) -> tuple[np.ndarray, float]:
-    """The moment centroid that best puts the body's points on their rays with this direction, and the capped
-    chi-square there: a weighted least-squares, refitted without the measurements beyond ``cap`` sigma."""
-    targets = origins - offsets[:, None] * direction[None, :]
-    use = np.ones(len(weights), dtype=bool)
-    best: tuple[np.ndarray, float] | None = None
+def _fit_centroids(directions: np.ndarray, origins: np.ndarray, offsets: np.ndarray, across: np.ndarray,
+                   weights: np.ndarray, cap: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per direction (rows of ``directions``), the moment centroid that best puts the body's points on their
+    rays, and the capped chi-square there: a weighted least-squares, refitted without the measurements beyond
+    ``cap`` sigma (all directions at once: the scan's cost is numpy's per-call overhead)."""
+    targets = origins[None, :, :] - offsets[None, :, None] * directions[:, None, :]
+    use = np.ones((len(directions), len(weights)))
+    best_chi2 = np.full(len(directions), np.inf)
+    best_centroid = np.zeros((len(directions), 3))
     for _ in range(TRIM_ROUNDS + 1):
-        w = weights * use
-        A = np.einsum("i,ijk->jk", w, across)
-        b = np.einsum("i,ijk,ik->j", w, across, targets)
-        try:
-            centroid = np.linalg.solve(A, b)
-        except np.linalg.LinAlgError:
-            break
-        residual = np.einsum("ijk,ik->ij", across, centroid[None, :] - targets)
-        z2 = weights * np.einsum("ij,ij->i", residual, residual)
-        chi2 = float(np.minimum(z2, cap * cap).sum())
-        if best is None or chi2 < best[1]:
-            best = (centroid, chi2)
-        keep = z2 <= cap * cap
-        if np.array_equal(keep, use) or keep.sum() < 4:
+        w = weights[None, :] * use
+        A = np.einsum("nm,mjk->njk", w, across)
+        b = np.einsum("nm,mjk,nmk->nj", w, across, targets)
+        centroid = np.linalg.solve(A, b[:, :, None])[:, :, 0]
+        residual = np.einsum("mjk,nmk->nmj", across, centroid[:, None, :] - targets)
+        z2 = weights[None, :] * np.einsum("nmj,nmj->nm", residual, residual)
+        chi2 = np.minimum(z2, cap * cap).sum(axis=1)
+        better = chi2 < best_chi2
+        best_chi2[better] = chi2[better]
+        best_centroid[better] = centroid[better]
+        keep = (z2 <= cap * cap).astype(float)
+        # (at least four points on their rays: a direction's centroid stays fixed)
+        keep[keep.sum(axis=1) < 4] = use[keep.sum(axis=1) < 4]
+        if np.array_equal(keep, use):
             break
         use = keep
-    assert best is not None
-    return best
+    return best_centroid, best_chi2
 
 
-def fit_in_plane(calibration: Calibration, centroid: np.ndarray, direction: np.ndarray, normal: np.ndarray,
+class PlaneScan:
+    """The body fitted with its axis turned about ``normal`` (the axis planes' normal) from ``direction`` (tail
+    to head; ``head_index``: each view's 2D end at the head): :attr:`chi2_at_start` at the measured direction
+    (one fit: where it is below the gain a refit must bring, the scan need not run), :meth:`best` within
+    ``SCAN_HALF_RANGE_DEG``."""
+
+    def __init__(self, calibration: Calibration, centroid: np.ndarray, direction: np.ndarray, normal: np.ndarray,
                  feats: dict[str, Features2D], head_index: dict[str, int], clutter: dict[str, float],
-                 body: BodyModel, cap: float) -> PlaneFit:
-    """The body's best place with its axis turned about ``normal`` (the axis planes' normal) from ``direction``
-    (tail to head; ``head_index``: each view's 2D end at the head), within ``SCAN_HALF_RANGE_DEG``."""
-    o, _, offsets, across, weights = _measurements(calibration, centroid, feats, head_index, clutter, body)
-    d0 = direction - float(direction @ normal) * normal
-    d0 = d0 / np.linalg.norm(d0)
-    side = np.cross(normal, d0)
+                 body: BodyModel, cap: float) -> None:
+        self._measured = _measurements(calibration, centroid, feats, head_index, clutter, body)
+        self._cap = cap
+        d0 = direction - float(direction @ normal) * normal
+        self._d0 = d0 / np.linalg.norm(d0)
+        self._side = np.cross(normal, self._d0)
+        self.chi2_at_start = float(self._at(np.zeros(1))[2][0])
 
-    def at(angle_deg: float) -> tuple[np.ndarray, np.ndarray, float]:
-        a = math.radians(angle_deg)
-        d = math.cos(a) * d0 + math.sin(a) * side
-        c, chi2 = _fit_centroid(d, o, offsets, across, weights, cap)
+    def _at(self, angles_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        a = np.radians(angles_deg)
+        d = np.cos(a)[:, None] * self._d0[None, :] + np.sin(a)[:, None] * self._side[None, :]
+        o, _, offsets, across, weights = self._measured
+        c, chi2 = _fit_centroids(d, o, offsets, across, weights, self._cap)
         return d, c, chi2
 
-    start = at(0.0)
-    coarse = np.arange(-SCAN_HALF_RANGE_DEG, SCAN_HALF_RANGE_DEG + 1e-9, SCAN_STEP_DEG)
-    best_angle = min(coarse, key=lambda a: at(float(a))[2])
-    fine = best_angle + np.arange(-SCAN_STEP_DEG, SCAN_STEP_DEG + 1e-9, REFINE_STEP_DEG)
-    d, c, chi2 = min((at(float(a)) for a in fine), key=lambda r: r[2])
-    return PlaneFit(d, c, chi2, start[2], len(weights))
+    def best(self) -> PlaneFit:
+        """The best direction in the plane, by a coarse scan refined around its minimum."""
+        coarse = np.arange(-SCAN_HALF_RANGE_DEG, SCAN_HALF_RANGE_DEG + 1e-9, SCAN_STEP_DEG)
+        _, _, chi2 = self._at(coarse)
+        best = float(coarse[int(np.argmin(chi2))])
+        fine = best + np.arange(-SCAN_STEP_DEG, SCAN_STEP_DEG + 1e-9, REFINE_STEP_DEG)
+        d, c, chi2 = self._at(fine)
+        k = int(np.argmin(chi2))
+        angle = float(fine[k])
+        _, _, beside = self._at(np.array([angle - CURVATURE_STEP_DEG, angle + CURVATURE_STEP_DEG]))
+        rise = float(beside.sum()) - 2.0 * float(chi2[k])
+        sigma = CURVATURE_STEP_DEG * math.sqrt(2.0 / rise) if rise > 0 else math.inf
+        return PlaneFit(d[k], c[k], float(chi2[k]), self.chi2_at_start, len(self._measured[4]), sigma)

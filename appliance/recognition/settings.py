@@ -185,9 +185,13 @@ class RecognitionSettings(StrictModel):
     head_body_cap: float = Field(4.0, gt=0)
     #: With the body known and the axis within ``min_plane_angle_deg`` of an epipolar plane (its direction in
     #: the plane from the triangulated tips), a measured length (head identified) off the body's by more than
-    #: this fraction has the axis refitted in the plane by the body (:mod:`.axis_by_length`); the fit is
-    #: taken where it is within ``head_body_fit`` per degree of freedom, otherwise the frame has no axis.
-    plane_length_tolerance: float = Field(0.1, gt=0)
+    #: ``plane_length_tolerance`` (a fraction) has the axis refitted in the plane by the body
+    #: (:mod:`.axis_by_length`). The fit is taken where the measured direction fits worse by
+    #: ``plane_refit_chi2`` (chi-square) and the best fits within ``head_body_fit`` per degree of freedom; a
+    #: measured direction the body does not tell from the best is kept; no fit at all leaves the frame
+    #: without an axis.
+    plane_length_tolerance: float = Field(0.03, gt=0)
+    plane_refit_chi2: float = Field(9.0, gt=0)
 
     #: A rod whose 3D centroid and tips reproject worse than this (RMS px over both views) onto its images
     #: is lost (plausibility.off_its_images; a frame over another structure: ``max_cluttered_reprojection_px``).

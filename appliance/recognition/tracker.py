@@ -41,7 +41,7 @@ from appliance.geometry import (
     triangulate,
 )
 from appliance.geometry_kernels import project_segment
-from appliance.recognition.axis_by_length import fit_in_plane
+from appliance.recognition.axis_by_length import PlaneScan
 from appliance.recognition.body_prior import BodyModel, end_clutter, ends_used, place_body
 from appliance.recognition.correspondence import pair_candidates, pairing_rms
 from appliance.recognition.detection import detect
@@ -610,14 +610,17 @@ class PostureTracker:
         Near an epipolar plane (``settings.min_plane_angle_deg``) the axis planes fix nothing within it and the
         direction there is the triangulated tips': an end run on into another structure turns it (standing
         seed 1234567, robot 6, pose 6: 40 mm measured against 30, 6.5 deg off). The body, its head where
-        the reconstruction put it, is fitted with its axis turned in the plane; the best fit is taken if it
-        fits within ``settings.head_body_fit`` per degree of freedom, and otherwise the frame is reported
-        without an axis (as an unresolved mirror ambiguity), since the measured one is known to be wrong.
+        the reconstruction put it, is fitted with its axis turned in the plane. No direction fitting within
+        ``settings.head_body_fit`` per degree of freedom: the frame is reported without an axis (as an
+        unresolved mirror ambiguity). The best is taken where the measured direction fits worse by
+        ``settings.plane_refit_chi2``, its uncertainty in the plane the axis sigma (for the body prior);
+        otherwise the measured direction stands. A body without a flat tail (robot 4) is left alone, as in
+        :meth:`_head_by_body`.
         """
         body = self.body
         s = self.settings
         if (body is None or s.estimator == "paper" or rec.direction is None or not rec.head_identified
-                or rec.length_mm is None or rec.plane_angle_deg >= s.min_plane_angle_deg
+                or not body.length_mm - body.cone_length_mm >= body.diameter_mm or rec.length_mm is None or rec.plane_angle_deg >= s.min_plane_angle_deg
                 or abs(rec.length_mm - body.length_mm) <= s.plane_length_tolerance * body.length_mm):
             return rec
         feats = rec.view_features
@@ -629,8 +632,11 @@ class PostureTracker:
         normal = n_p + (1.0 if float(n_p @ n_q) >= 0 else -1.0) * n_q
         normal = normal / np.linalg.norm(normal)
         clutter = {name: blob.clutter for name, blob in blobs.items()}
-        fit = fit_in_plane(self.calibration, rec.centroid, rec.direction, normal, feats, head_index,  # type: ignore[arg-type]
-                           clutter, body, s.head_body_cap)
+        scan = PlaneScan(self.calibration, rec.centroid, rec.direction, normal, feats, head_index,  # type: ignore[arg-type]
+                         clutter, body, s.head_body_cap)
+        if scan.chi2_at_start < s.plane_refit_chi2:
+            return rec   # the measured direction fits: no refit could gain enough
+        fit = scan.best()
         dof = 2 * fit.measurements - 6
         turned = math.degrees(math.acos(min(1.0, abs(float(fit.direction @ rec.direction)))))
         if fit.chi2 > s.head_body_fit * dof:
@@ -642,6 +648,8 @@ class PostureTracker:
                            reprojection_px=None, ambiguous=True, reasons=reasons, candidates=[rec.direction],
                            view_tips={name: feat.tips for name, feat in feats.items()},
                            view_features={name: replace(feat, head_index=None) for name, feat in feats.items()})
+        if fit.chi2_at_start - fit.chi2 < s.plane_refit_chi2:
+            return rec   # the body does not tell the measured direction from the best
         placed = np.empty(reconstruction_kernels.TIPS_SIZE)
         reconstruction_kernels.place_tips(self._packed, fit.centroid, fit.direction, feats["p"].tips, head_index["p"],
                                           feats["q"].tips, head_index["q"], feats["p"].centroid, feats["q"].centroid,
@@ -653,10 +661,11 @@ class PostureTracker:
         reasons = rec.reasons + [
             f"the axis is turned {turned:.1f} deg in the epipolar plane by the body: its ends put it "
             f"{rec.length_mm:.1f} mm long (the body is {body.length_mm:g} mm; fit chi-square {fit.chi2:.1f} "
-            f"against {fit.chi2_at_start:.1f} as measured)"]
+            f"against {fit.chi2_at_start:.1f} as measured; the direction in the plane to {fit.sigma_deg:.1f} deg)"]
+        sigma = max(rec.axis_sigma_rad or 0.0, math.radians(fit.sigma_deg))
         return replace(rec, centroid=fit.centroid, direction=fit.direction, tips=tips, length_mm=length,
                        reprojection_px=reprojection if math.isfinite(reprojection) else None, ambiguous=True,
-                       reasons=reasons)
+                       reasons=reasons, axis_sigma_rad=sigma)
 
     # ------------------------------------------------------------------------------------ results
     def _posture(self, frame: int, t: float, rec: Reconstruction, blobs: dict[str, Blob]) -> Posture:
