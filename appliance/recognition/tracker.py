@@ -41,6 +41,7 @@ from appliance.geometry import (
     triangulate,
 )
 from appliance.geometry_kernels import project_segment
+from appliance.recognition import axis_by_length, reconstruction_kernels
 from appliance.recognition.axis_by_length import PlaneScan
 from appliance.recognition.body_prior import BodyModel, end_clutter, ends_used, place_body
 from appliance.recognition.correspondence import pair_candidates, pairing_rms
@@ -55,8 +56,13 @@ from appliance.recognition.plausibility import (
     off_its_images,
 )
 from appliance.recognition.posture import Posture, ViewObservation
-from appliance.recognition import reconstruction_kernels
-from appliance.recognition.reconstruction import Reconstruction, axis_plane, reconstruct, reconstruct_from_front
+from appliance.recognition.reconstruction import (
+    Reconstruction,
+    axis_plane,
+    ray_line_parameters,
+    reconstruct,
+    reconstruct_from_front,
+)
 from appliance.recognition.roi_search import _frozen, find_in_roi
 from appliance.recognition.segmentation import (
     Blob,
@@ -247,6 +253,7 @@ class PostureTracker:
             posture.timings_us = timings
             return posture
         rec = self._head_by_body(rec, blobs, feats, previous)
+        rec = self._mirror_by_body(rec, blobs, feats, previous)
         rec = self._axis_by_length(rec, blobs)
         rec = declutter(self.calibration, rec, blobs, self.settings)
         posture = self._posture(frame, t, rec, blobs)
@@ -603,6 +610,68 @@ class PostureTracker:
                               f"the body where the rest of it is (chi-square {best:.1f} against {other:.1f})")
         return redone
 
+    def _plane_normal(self, feats: dict[str, Features2D]) -> np.ndarray:
+        """The normal of the plane both views' axis planes (nearly) are: an epipolar plane."""
+        n_p = axis_plane(self.calibration.p, feats["p"])[:3]
+        n_q = axis_plane(self.calibration.q, feats["q"])[:3]
+        normal = n_p + (1.0 if float(n_p @ n_q) >= 0 else -1.0) * n_q
+        return normal / np.linalg.norm(normal)
+
+    def _mirror_by_body(self, rec: Reconstruction, blobs: dict[str, Blob], feats: dict[str, Features2D],
+                        previous: np.ndarray | None) -> Reconstruction:
+        """An unresolved mirror ambiguity (the axis near an epipolar plane, the pairings alike, no heads in both
+        views, no previous direction) resolved by the known body where that is decisive.
+
+        Both candidate axes, each with the head at either end, are fitted by the body with the axis turned
+        in the plane (:class:`.axis_by_length.PlaneScan`); where one hypothesis fits better than every other
+        by ``settings.head_body_chi2`` and fits within ``settings.head_body_fit`` per degree of freedom, both
+        views claim the head it puts, and the reconstruction is redone (resolved by the heads), taken if it
+        passes the same checks and its axis is the fit's (within ``SCAN_HALF_RANGE_DEG``). (Its direction in
+        the plane is the triangulated tips', refitted by :meth:`_axis_by_length` where their length is off: a
+        refit of every such frame turned some right ones by 1-2 deg, dev seed 15 robot 6 pose 26.)
+        """
+        body = self.body
+        s = self.settings
+        if (body is None or s.estimator == "paper" or rec.direction is not None or not rec.candidates
+                or len(rec.candidates) != 2 or not all(np.all(np.isfinite(c)) for c in rec.candidates)
+                or rec.plane_angle_deg >= s.min_plane_angle_deg
+                or not body.length_mm - body.cone_length_mm >= body.diameter_mm
+                or any(feat.reach is None for feat in feats.values())):
+            return rec
+        normal = self._plane_normal(feats)
+        clutter = {name: blob.clutter for name, blob in blobs.items()}
+        fits = []
+        for candidate in rec.candidates:
+            for sign in (1.0, -1.0):
+                d = sign * candidate / np.linalg.norm(candidate)
+                head_index = {}
+                for name, feat in feats.items():
+                    b, _ = ray_line_parameters(self.calibration.views[name], feat.tips, rec.centroid, d)
+                    head_index[name] = 0 if b[0] >= b[1] else 1
+                scan = PlaneScan(self.calibration, rec.centroid, d, normal, feats, head_index, clutter, body,
+                                 s.head_body_cap)
+                fits.append((scan.best(), head_index))
+        order = sorted(range(len(fits)), key=lambda k: fits[k][0].chi2)
+        best, head_index = fits[order[0]]
+        runner_up = fits[order[1]][0]
+        if not (runner_up.chi2 - best.chi2 >= s.head_body_chi2
+                and best.chi2 <= s.head_body_fit * (2 * best.measurements - 6)):
+            return rec
+        claimed = {name: feat.with_head(head_index[name]) for name, feat in feats.items()}
+        try:
+            redone = reconstruct(self.calibration, self.F, claimed["p"], claimed["q"], s, previous)
+        except ValueError:
+            return rec
+        if (redone.direction is None or not redone.head_identified
+                or math.degrees(math.acos(min(1.0, float(redone.direction @ best.direction))))
+                > axis_by_length.SCAN_HALF_RANGE_DEG
+                or self._rejection(redone, blobs, feats, previous) is not None):
+            return rec
+        redone.reasons.append(f"the mirror ambiguity is resolved by the body's shape: that axis, the head at its "
+                              f"end, fits the body best (chi-square {best.chi2:.1f} against {runner_up.chi2:.1f} "
+                              f"for the next)")
+        return redone
+
     def _axis_by_length(self, rec: Reconstruction, blobs: dict[str, Blob]) -> Reconstruction:
         """The axis within an epipolar plane refitted by the known body (:mod:`.axis_by_length`) where the
         measured length is off the body's by more than ``settings.plane_length_tolerance``.
@@ -620,17 +689,15 @@ class PostureTracker:
         body = self.body
         s = self.settings
         if (body is None or s.estimator == "paper" or rec.direction is None or not rec.head_identified
-                or not body.length_mm - body.cone_length_mm >= body.diameter_mm or rec.length_mm is None or rec.plane_angle_deg >= s.min_plane_angle_deg
+                or not body.length_mm - body.cone_length_mm >= body.diameter_mm or rec.length_mm is None
+                or rec.plane_angle_deg >= s.min_plane_angle_deg
                 or abs(rec.length_mm - body.length_mm) <= s.plane_length_tolerance * body.length_mm):
             return rec
         feats = rec.view_features
         head_index = {name: feat.head_index for name, feat in feats.items()}
         if any(index is None for index in head_index.values()):
             return rec
-        n_p = axis_plane(self.calibration.p, feats["p"])[:3]
-        n_q = axis_plane(self.calibration.q, feats["q"])[:3]
-        normal = n_p + (1.0 if float(n_p @ n_q) >= 0 else -1.0) * n_q
-        normal = normal / np.linalg.norm(normal)
+        normal = self._plane_normal(feats)  # type: ignore[arg-type]
         clutter = {name: blob.clutter for name, blob in blobs.items()}
         scan = PlaneScan(self.calibration, rec.centroid, rec.direction, normal, feats, head_index,  # type: ignore[arg-type]
                          clutter, body, s.head_body_cap)
