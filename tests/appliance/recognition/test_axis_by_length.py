@@ -121,3 +121,34 @@ def test_tracker_turns_the_axis_or_reports_none(calibration: Calibration, robot6
     lost = tracker._axis_by_length(_reconstruction(calibration, robot6, wild, c, truth, 45.0), clean)  # type: ignore[arg-type]
     assert lost.direction is None and lost.tips is None and not lost.head_identified
     assert "no axis" in lost.reasons[-1]
+
+
+def _profiled(feat: Features2D, cone_px: float) -> Features2D:
+    """``feat`` with an axial profile (``reach``) whose end 0 is the cone (apex at the tip) and end 1 a blurred
+    step, and no head claimed: what a view that cannot tell the ends' ramps apart leaves."""
+    apex = float((feat.tips[0] - feat.centroid) @ feat.axis)
+    tail = float((feat.centroid - feat.tips[1]) @ feat.axis)
+    cone = {level: apex - cone_px * math.sqrt(level) for level in (0.2, 0.25, 0.5, 0.64, 0.8)}
+    step = {0.2: tail + 1.0, 0.25: tail + 0.8, 0.5: tail, 0.64: tail - 0.5, 0.8: tail - 1.0}
+    return Features2D(feat.centroid, feat.axis, feat.eigenvalues, np.array([feat.centroid + cone[0.5] * feat.axis,
+                      feat.centroid - tail * feat.axis]), 100, None, (1.0, 1.0), (cone, step))
+
+
+def test_mirror_resolved_by_the_body(calibration: Calibration, robot6: BodyModel,
+                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    from appliance.recognition.reconstruction import reconstruct
+
+    tracker = PostureTracker(calibration, RecognitionSettings(), body=load_robots()[6])
+    monkeypatch.setattr(tracker, "_rejection", lambda *args: None)   # (no blobs: the checks have nothing to test)
+    c = np.array([2.0, 3.0, -1.0])
+    truth, _ = _in_epipolar_plane(calibration, c, 25.0)
+    feats = _features(calibration, robot6, c, truth, {})
+    feats = {name: _profiled(f, robot6.cone_length_mm / robot6.length_mm * float(np.linalg.norm(f.tips[0] - f.tips[1])))
+             for name, f in feats.items()}
+    rec = reconstruct(calibration, tracker.F, feats["p"], feats["q"], tracker.settings, None)
+    assert rec.direction is None and rec.candidates is not None   # the mirror ambiguity, unresolved
+    blobs = {"p": SimpleNamespace(clutter=0.0), "q": SimpleNamespace(clutter=0.0)}
+    resolved = tracker._mirror_by_body(rec, blobs, feats, None)  # type: ignore[arg-type]
+    assert resolved.direction is not None and resolved.head_identified
+    assert _angle_deg(resolved.direction, truth) < 1.0
+    assert "mirror ambiguity is resolved" in resolved.reasons[-1]
