@@ -191,8 +191,10 @@ class RecognitionSettings(StrictModel):
     #: measured direction the body does not tell from the best is kept; no fit at all leaves the frame
     #: without an axis. Dev seeds 1-20, robots 1-3 and 5-7, cold: clean near-plane frames measure within
     #: 2 % of the body; the gate at 3 % refits two frames (robot 6 seed 17 pose 1, 27.2 mm: 4.3 -> 0.15 deg;
-    #: robot 1 seed 18 pose 7, 9.6 mm: 3.2 -> 0.2 deg). Refitting every near-plane frame turned some right ones
-    #: by 1-2 deg (the fit's noise model is optimistic there), and costs ~0.4 ms a frame.
+    #: robot 1 seed 18 pose 7, 9.6 mm: 3.2 -> 0.2 deg). Without the gate one more is refitted for the better
+    #: (robot 1 seed 3 pose 19, 2.6 -> 0.2 deg), but a frame the body resolved from a mirror ambiguity for the
+    #: worse (robot 6 seed 15 pose 26, 0.8 -> 1.7 deg: the fit's noise model is optimistic there), and every
+    #: near-plane frame pays the fit's first step (~0.4 ms; such frames are most of the steady state's tail).
     plane_length_tolerance: float = Field(0.03, gt=0)
     plane_refit_chi2: float = Field(9.0, gt=0)
 
