@@ -41,6 +41,8 @@ from appliance.geometry import (
     triangulate,
 )
 from appliance.geometry_kernels import project_segment
+from appliance.recognition import axis_by_length, reconstruction_kernels
+from appliance.recognition.axis_by_length import PlaneScan
 from appliance.recognition.body_prior import BodyModel, end_clutter, ends_used, place_body
 from appliance.recognition.correspondence import pair_candidates, pairing_rms
 from appliance.recognition.detection import detect
@@ -54,7 +56,13 @@ from appliance.recognition.plausibility import (
     off_its_images,
 )
 from appliance.recognition.posture import Posture, ViewObservation
-from appliance.recognition.reconstruction import Reconstruction, reconstruct, reconstruct_from_front
+from appliance.recognition.reconstruction import (
+    Reconstruction,
+    axis_plane,
+    ray_line_parameters,
+    reconstruct,
+    reconstruct_from_front,
+)
 from appliance.recognition.roi_search import _frozen, find_in_roi
 from appliance.recognition.segmentation import (
     Blob,
@@ -245,6 +253,8 @@ class PostureTracker:
             posture.timings_us = timings
             return posture
         rec = self._head_by_body(rec, blobs, feats, previous)
+        rec = self._mirror_by_body(rec, blobs, feats, previous)
+        rec = self._axis_by_length(rec, blobs)
         rec = declutter(self.calibration, rec, blobs, self.settings)
         posture = self._posture(frame, t, rec, blobs)
         if self.body is not None:
@@ -599,6 +609,130 @@ class PostureTracker:
         redone.reasons.append(f"the head is told by the body's shape: measured as the cone's apex, that end puts "
                               f"the body where the rest of it is (chi-square {best:.1f} against {other:.1f})")
         return redone
+
+    def _plane_normal(self, feats: dict[str, Features2D]) -> np.ndarray:
+        """The normal of the plane both views' axis planes (nearly) are: an epipolar plane."""
+        n_p = axis_plane(self.calibration.p, feats["p"])[:3]
+        n_q = axis_plane(self.calibration.q, feats["q"])[:3]
+        normal = n_p + (1.0 if float(n_p @ n_q) >= 0 else -1.0) * n_q
+        return normal / np.linalg.norm(normal)
+
+    def _mirror_by_body(self, rec: Reconstruction, blobs: dict[str, Blob], feats: dict[str, Features2D],
+                        previous: np.ndarray | None) -> Reconstruction:
+        """An unresolved mirror ambiguity (the axis near an epipolar plane, the pairings alike, no heads in both
+        views, no previous direction) resolved by the known body where that is decisive.
+
+        Both candidate axes, each with the head at either end, are fitted by the body with the axis turned
+        in the plane (:class:`.axis_by_length.PlaneScan`); where one hypothesis fits better than every other
+        by ``settings.head_body_chi2`` and fits within ``settings.head_body_fit`` per degree of freedom, both
+        views claim the head it puts, and the reconstruction is redone (resolved by the heads), taken if it
+        passes the same checks and its axis is the fit's (within ``SCAN_HALF_RANGE_DEG``). (Its direction in
+        the plane is the triangulated tips', refitted by :meth:`_axis_by_length` where their length is off: a
+        refit of every such frame turned some right ones by 1-2 deg, dev seed 15 robot 6 pose 26.)
+        """
+        body = self.body
+        s = self.settings
+        if (body is None or s.estimator == "paper" or rec.direction is not None or not rec.candidates
+                or len(rec.candidates) != 2 or not all(np.all(np.isfinite(c)) for c in rec.candidates)
+                or rec.plane_angle_deg >= s.min_plane_angle_deg
+                or not body.length_mm - body.cone_length_mm >= body.diameter_mm
+                or any(feat.reach is None for feat in feats.values())):
+            return rec
+        normal = self._plane_normal(feats)
+        clutter = {name: blob.clutter for name, blob in blobs.items()}
+        fits = []
+        for candidate in rec.candidates:
+            for sign in (1.0, -1.0):
+                d = sign * candidate / np.linalg.norm(candidate)
+                head_index = {}
+                for name, feat in feats.items():
+                    b, _ = ray_line_parameters(self.calibration.views[name], feat.tips, rec.centroid, d)
+                    head_index[name] = 0 if b[0] >= b[1] else 1
+                scan = PlaneScan(self.calibration, rec.centroid, d, normal, feats, head_index, clutter, body,
+                                 s.head_body_cap)
+                fits.append((scan.best(), head_index))
+        order = sorted(range(len(fits)), key=lambda k: fits[k][0].chi2)
+        best, head_index = fits[order[0]]
+        runner_up = fits[order[1]][0]
+        if not (runner_up.chi2 - best.chi2 >= s.head_body_chi2
+                and best.chi2 <= s.head_body_fit * (2 * best.measurements - 6)):
+            return rec
+        claimed = {name: feat.with_head(head_index[name]) for name, feat in feats.items()}
+        try:
+            redone = reconstruct(self.calibration, self.F, claimed["p"], claimed["q"], s, previous)
+        except ValueError:
+            return rec
+        if (redone.direction is None or not redone.head_identified
+                or math.degrees(math.acos(min(1.0, float(redone.direction @ best.direction))))
+                > axis_by_length.SCAN_HALF_RANGE_DEG
+                or self._rejection(redone, blobs, feats, previous) is not None):
+            return rec
+        redone.reasons.append(f"the mirror ambiguity is resolved by the body's shape: that axis, the head at its "
+                              f"end, fits the body best (chi-square {best.chi2:.1f} against {runner_up.chi2:.1f} "
+                              f"for the next)")
+        return redone
+
+    def _axis_by_length(self, rec: Reconstruction, blobs: dict[str, Blob]) -> Reconstruction:
+        """The axis within an epipolar plane refitted by the known body (:mod:`.axis_by_length`) where the
+        measured length is off the body's by more than ``settings.plane_length_tolerance``.
+
+        Near an epipolar plane (``settings.min_plane_angle_deg``) the axis planes fix nothing within it and the
+        direction there is the triangulated tips': an end run on into another structure turns it (standing
+        seed 1234567, robot 6, pose 6: 40 mm measured against 30, 6.5 deg off). The body, its head where
+        the reconstruction put it, is fitted with its axis turned in the plane. No direction fitting within
+        ``settings.head_body_fit`` per degree of freedom: the frame is reported without an axis (as an
+        unresolved mirror ambiguity). The best is taken where the measured direction fits worse by
+        ``settings.plane_refit_chi2``, its uncertainty in the plane the axis sigma (for the body prior);
+        otherwise the measured direction stands. A body without a flat tail (robot 4) is left alone, as in
+        :meth:`_head_by_body`.
+        """
+        body = self.body
+        s = self.settings
+        if (body is None or s.estimator == "paper" or rec.direction is None or not rec.head_identified
+                or not body.length_mm - body.cone_length_mm >= body.diameter_mm or rec.length_mm is None
+                or rec.plane_angle_deg >= s.min_plane_angle_deg
+                or abs(rec.length_mm - body.length_mm) <= s.plane_length_tolerance * body.length_mm):
+            return rec
+        feats = rec.view_features
+        head_index = {name: feat.head_index for name, feat in feats.items()}
+        if any(index is None for index in head_index.values()):
+            return rec
+        normal = self._plane_normal(feats)  # type: ignore[arg-type]
+        clutter = {name: blob.clutter for name, blob in blobs.items()}
+        scan = PlaneScan(self.calibration, rec.centroid, rec.direction, normal, feats, head_index,  # type: ignore[arg-type]
+                         clutter, body, s.head_body_cap)
+        if scan.chi2_at_start < s.plane_refit_chi2:
+            return rec   # the measured direction fits: no refit could gain enough
+        fit = scan.best()
+        dof = 2 * fit.measurements - 6
+        turned = math.degrees(math.acos(min(1.0, abs(float(fit.direction @ rec.direction)))))
+        if fit.chi2 > s.head_body_fit * dof:
+            reasons = rec.reasons + [
+                f"no axis: it lies within {rec.plane_angle_deg:.1f} deg of an epipolar plane and its ends put the body "
+                f"{rec.length_mm:.1f} mm long (the body is {body.length_mm:g} mm), and no direction in the plane "
+                f"fits the body (chi-square {fit.chi2:.1f} for {dof} degrees of freedom)"]
+            return replace(rec, direction=None, tips=None, head_identified=False, length_mm=None,
+                           reprojection_px=None, ambiguous=True, reasons=reasons, candidates=[rec.direction],
+                           view_tips={name: feat.tips for name, feat in feats.items()},
+                           view_features={name: replace(feat, head_index=None) for name, feat in feats.items()})
+        if fit.chi2_at_start - fit.chi2 < s.plane_refit_chi2:
+            return rec   # the body does not tell the measured direction from the best
+        placed = np.empty(reconstruction_kernels.TIPS_SIZE)
+        reconstruction_kernels.place_tips(self._packed, fit.centroid, fit.direction, feats["p"].tips, head_index["p"],
+                                          feats["q"].tips, head_index["q"], feats["p"].centroid, feats["q"].centroid,
+                                          placed)
+        points = reconstruction_kernels.TIPS_POINTS
+        tips = placed[points:points + 6].reshape(2, 3).copy()
+        length, reprojection = placed[reconstruction_kernels.TIPS_LENGTH:
+                                      reconstruction_kernels.TIPS_REPROJECTION + 1].tolist()
+        reasons = rec.reasons + [
+            f"the axis is turned {turned:.1f} deg in the epipolar plane by the body: its ends put it "
+            f"{rec.length_mm:.1f} mm long (the body is {body.length_mm:g} mm; fit chi-square {fit.chi2:.1f} "
+            f"against {fit.chi2_at_start:.1f} as measured; the direction in the plane to {fit.sigma_deg:.1f} deg)"]
+        sigma = max(rec.axis_sigma_rad or 0.0, math.radians(fit.sigma_deg))
+        return replace(rec, centroid=fit.centroid, direction=fit.direction, tips=tips, length_mm=length,
+                       reprojection_px=reprojection if math.isfinite(reprojection) else None, ambiguous=True,
+                       reasons=reasons, axis_sigma_rad=sigma)
 
     # ------------------------------------------------------------------------------------ results
     def _posture(self, frame: int, t: float, rec: Reconstruction, blobs: dict[str, Blob]) -> Posture:
