@@ -3,6 +3,7 @@ axis, tips on the axis, and the mirror ambiguity of an axis lying in an epipolar
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -70,6 +71,20 @@ def test_reconstruction_recovers_the_segment(calibration: Calibration, swap_p: b
     assert rec.centroid == pytest.approx(c, abs=0.05)
     assert rec.tips[0] == pytest.approx(head, abs=0.05) and rec.tips[1] == pytest.approx(tail, abs=0.05)
     assert rec.length_mm == pytest.approx(10.0, abs=0.1)
+
+
+def test_an_axis_uncertain_by_two_degrees_is_flagged(calibration: Calibration) -> None:
+    # A short robot (3 mm) that view q sees with a 2.5 deg axis noise: its 3D axis is uncertain by ~2 deg,
+    # which leaves too much chance of a 5 deg error to pass unflagged (the limit is 1.5 deg).
+    c, d, head, tail = _segment((2.0, -1.0, 3.0), (0.5, -0.2, 0.7), half=1.5)
+    fp = _features(calibration.p, head, tail, c)
+    fq = replace(_features(calibration.q, head, tail, c), axis_sigma_rad=math.radians(2.5))
+    rec = reconstruct(calibration, calibration.F, fp, fq, SETTINGS)
+    assert rec.axis_sigma_rad is not None and 1.5 < math.degrees(rec.axis_sigma_rad) < 2.5
+    assert rec.ambiguous and any("the axis is uncertain" in r for r in rec.reasons), rec.reasons
+    lenient = reconstruct(calibration, calibration.F, fp, fq, RecognitionSettings(max_axis_sigma_deg=2.5))
+    assert not lenient.ambiguous, lenient.reasons
+    assert float(rec.direction @ d) == pytest.approx(1.0, abs=1e-8)   # (flagged, not moved)
 
 
 def test_axis_in_an_epipolar_plane_is_ambiguous_and_resolved_from_history(calibration: Calibration) -> None:
