@@ -33,6 +33,7 @@ import argparse
 import math
 import sys
 from pathlib import Path
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -121,6 +122,14 @@ def collect(robot_id: int, seed: int, poses_n: int, recorder: _Recorder) -> list
     return frames
 
 
+def _bins(values: np.ndarray, edges: tuple[float, ...]) -> Iterator[tuple[float, float, np.ndarray]]:
+    """Each range of ``edges`` holding at least 5 of ``values``: its ends and the mask of those values."""
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        m = (values >= lo) & (values < hi)
+        if m.sum() >= 5:
+            yield lo, hi, m
+
+
 def _ratio_text(z: np.ndarray) -> str:
     return (f"RMS {np.sqrt(np.mean(z ** 2)):.2f} median {np.median(z):.2f} p90 {np.percentile(z, 90):.2f} "
             f"max {z.max():.2f}")
@@ -134,11 +143,9 @@ def report(robot_id: int, frames: list[dict[str, Any]]) -> None:
         length = np.array([v["length_px"] for v in views])
         err = np.radians([v["err_deg"] for v in views])
         sigma = np.radians([v["sigma_deg"] for v in views])
-        for lo, hi in zip(LENGTH_BINS_PX[:-1], LENGTH_BINS_PX[1:]):
-            m = (length >= lo) & (length < hi)
-            if m.sum() >= 5:
-                print(f"  2D, length {lo:>3}-{hi:<5} px: {m.sum():4d} views, "
-                      f"|err|/sigma {_ratio_text(err[m] / sigma[m])}  (err RMS {math.degrees(np.sqrt(np.mean(err[m] ** 2))):.2f} deg)")
+        for lo, hi, m in _bins(length, LENGTH_BINS_PX):
+            print(f"  2D, length {lo:>3}-{hi:<5} px: {m.sum():4d} views, "
+                  f"|err|/sigma {_ratio_text(err[m] / sigma[m])}  (err RMS {math.degrees(np.sqrt(np.mean(err[m] ** 2))):.2f} deg)")
         for c in LENGTH_FLOORS_RAD_PX:
             z = err / np.hypot(sigma, c / length)
             print(f"  2D with a floor {c:.2f}/L rad: |err|/sigma RMS {np.sqrt(np.mean(z ** 2)):.2f}, max {z.max():.2f}")
@@ -146,11 +153,9 @@ def report(robot_id: int, frames: list[dict[str, Any]]) -> None:
              and f["score"]["axis_deg"] is not None]
     sigma3 = np.array([f["sigma_deg"] for f in clean])
     z3 = np.array([f["score"]["axis_deg"] / f["sigma_deg"] for f in clean])
-    for lo, hi in zip(SIGMA_BINS_DEG[:-1], SIGMA_BINS_DEG[1:]):
-        m = (sigma3 >= lo) & (sigma3 < hi)
-        if m.sum() >= 5:
-            print(f"  3D, sigma {lo:.1f}-{hi:<5.1f} deg: {m.sum():4d} ok frames not ambiguous otherwise, "
-                  f"|err|/sigma {_ratio_text(z3[m])}")
+    for lo, hi, m in _bins(sigma3, SIGMA_BINS_DEG):
+        print(f"  3D, sigma {lo:.1f}-{hi:<5.1f} deg: {m.sum():4d} ok frames not ambiguous otherwise, "
+              f"|err|/sigma {_ratio_text(z3[m])}")
     for limit in FLAG_LIMITS_DEG:
         print("  " + _flag_limit_text(frames, limit))
     limit = accuracy.RecognitionSettings().max_axis_sigma_deg
