@@ -3,19 +3,26 @@
 The frame is flagged ambiguous when the 3D axis sigma exceeds ``RecognitionSettings.max_axis_sigma_deg``,
 so a silent failure (axis error above 5 deg, not flagged) is an error many sigmas out, or a sigma that
 is too small. For each robot and seed, the frames of ``benchmarks/accuracy.py`` (same poses, same
-noise, recognised from scratch by the default pipeline) are recognised again while recording the
-features the last reconstruction of the frame was given; the true 2D axis of each view is the
-projection of the true head and tail. The tables give:
+noise, recognised from scratch by the default pipeline, but with that flag off, so that each limit can
+be applied afterwards) are recognised again while recording the features the last reconstruction of the
+frame was given; the true 2D axis of each view is the projection of the true head and tail. The tables
+give:
 
 * 2D, per robot and image length of the blob (its tips' distance, px), over the views off other
   structures (clutter < 0.05) that are elongated enough to give an axis plane: the ratio z =
   |2D axis error| / reported 2D sigma (RMS, median, 90th percentile, maximum; a calibrated Gaussian
   sigma gives RMS 1, median 0.67, p90 1.64), and the RMS of z with a length floor ``c / L`` (rad)
   added in quadrature, for a few ``c``;
-* 3D, per robot: the ratio |3D axis error| / reported 3D sigma over the frames that are ok and not
-  ambiguous (the 3D sigma is the larger of the two; a calibrated one gives an RMS between 1 and
-  sqrt 2);
-* every frame with an axis error above 5 deg that is not flagged, with both views' 2D numbers.
+* 3D, per robot and range of the 3D sigma: the ratio |3D axis error| / reported 3D sigma over the
+  frames that are ok and not ambiguous for another reason (the 3D sigma is the larger of the two; a
+  calibrated one gives an RMS between 1 and sqrt 2);
+* per candidate limit (``FLAG_LIMITS_DEG``): the fraction of frames flagged (ambiguous or not ok), the
+  silent failures, the median axis error of the frames left, and the expected silent failures per frame
+  if the sigma is calibrated: the mean over the unflagged frames of the chance that the error exceeds
+  5 deg, between a one-dimensional error (erfc(k / sqrt 2), k = 5 deg / sigma) and an isotropic one
+  (exp(-k^2 / 2));
+* every frame with an axis error above 5 deg that the current limit leaves unflagged, with both views'
+  2D numbers.
 
 Usage: ``python benchmarks/axis_sigma_calibration.py [--robots 4,2,7] [--seeds 1-20] [--poses 30]``.
 It prints tables and asserts nothing; use development seeds, not the standing ones.
@@ -26,6 +33,7 @@ import argparse
 import math
 import sys
 from pathlib import Path
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -41,6 +49,9 @@ from appliance.recognition import reconstruction, tracker  # noqa: E402
 LENGTH_BINS_PX = (0, 7, 10, 14, 20, 40, 80, 10_000)
 LENGTH_FLOORS_RAD_PX = (0.0, 0.05, 0.1)
 CLEAN_CLUTTER = 0.05
+SIGMA_BINS_DEG = (0.0, 0.5, 1.0, 1.5, 2.5, 5.0, 180.0)
+FLAG_LIMITS_DEG = (2.5, 2.0, 1.75, 1.5, 1.25)
+NO_FLAG_DEG = 1e9  # the limit the frames are recognised with: the axis sigma never flags them
 
 
 class _Recorder:
@@ -85,7 +96,8 @@ def collect(robot_id: int, seed: int, poses_n: int, recorder: _Recorder) -> list
     imaging = a.ImagingSettings()
     body = a.RobotBody(spec.length_mm, spec.diameter_mm, spec.tip_angle_deg, spec.attenuation_per_mm)
     renderer = a.BiplaneRenderer(views, body, vessel=phantom, settings=imaging, seed=seed + robot_id)
-    track = a.PostureTracker(calibration, a.RecognitionSettings(dark_level=imaging.dark_level), body=spec)
+    settings = a.RecognitionSettings(dark_level=imaging.dark_level, max_axis_sigma_deg=NO_FLAG_DEG)
+    track = a.PostureTracker(calibration, settings, body=spec)
     frames = []
     for i, pose in enumerate(accuracy.random_poses(np.random.default_rng([seed, robot_id]), poses_n)):
         pair = renderer.render(pose)
@@ -110,6 +122,14 @@ def collect(robot_id: int, seed: int, poses_n: int, recorder: _Recorder) -> list
     return frames
 
 
+def _bins(values: np.ndarray, edges: tuple[float, ...]) -> Iterator[tuple[float, float, np.ndarray]]:
+    """Each range of ``edges`` holding at least 5 of ``values``: its ends and the mask of those values."""
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        m = (values >= lo) & (values < hi)
+        if m.sum() >= 5:
+            yield lo, hi, m
+
+
 def _ratio_text(z: np.ndarray) -> str:
     return (f"RMS {np.sqrt(np.mean(z ** 2)):.2f} median {np.median(z):.2f} p90 {np.percentile(z, 90):.2f} "
             f"max {z.max():.2f}")
@@ -123,27 +143,46 @@ def report(robot_id: int, frames: list[dict[str, Any]]) -> None:
         length = np.array([v["length_px"] for v in views])
         err = np.radians([v["err_deg"] for v in views])
         sigma = np.radians([v["sigma_deg"] for v in views])
-        for lo, hi in zip(LENGTH_BINS_PX[:-1], LENGTH_BINS_PX[1:]):
-            m = (length >= lo) & (length < hi)
-            if m.sum() >= 5:
-                print(f"  2D, length {lo:>3}-{hi:<5} px: {m.sum():4d} views, "
-                      f"|err|/sigma {_ratio_text(err[m] / sigma[m])}  (err RMS {math.degrees(np.sqrt(np.mean(err[m] ** 2))):.2f} deg)")
+        for lo, hi, m in _bins(length, LENGTH_BINS_PX):
+            print(f"  2D, length {lo:>3}-{hi:<5} px: {m.sum():4d} views, "
+                  f"|err|/sigma {_ratio_text(err[m] / sigma[m])}  (err RMS {math.degrees(np.sqrt(np.mean(err[m] ** 2))):.2f} deg)")
         for c in LENGTH_FLOORS_RAD_PX:
             z = err / np.hypot(sigma, c / length)
             print(f"  2D with a floor {c:.2f}/L rad: |err|/sigma RMS {np.sqrt(np.mean(z ** 2)):.2f}, max {z.max():.2f}")
     clean = [f for f in frames if f["score"]["ok"] and not f["score"]["ambiguous"] and f["sigma_deg"]
              and f["score"]["axis_deg"] is not None]
-    if clean:
-        z = np.array([f["score"]["axis_deg"] / f["sigma_deg"] for f in clean])
-        print(f"  3D, {len(clean)} ok non-ambiguous frames: |err|/sigma {_ratio_text(z)}")
+    sigma3 = np.array([f["sigma_deg"] for f in clean])
+    z3 = np.array([f["score"]["axis_deg"] / f["sigma_deg"] for f in clean])
+    for lo, hi, m in _bins(sigma3, SIGMA_BINS_DEG):
+        print(f"  3D, sigma {lo:.1f}-{hi:<5.1f} deg: {m.sum():4d} ok frames not ambiguous otherwise, "
+              f"|err|/sigma {_ratio_text(z3[m])}")
+    for limit in FLAG_LIMITS_DEG:
+        print("  " + _flag_limit_text(frames, limit))
+    limit = accuracy.RecognitionSettings().max_axis_sigma_deg
     for f in frames:
         s = f["score"]
-        if s["ok"] and not s["ambiguous"] and s["axis_deg"] is not None and s["axis_deg"] > accuracy.SILENT_AXIS_DEG:
+        if (s["ok"] and not s["ambiguous"] and s["axis_deg"] is not None and s["axis_deg"] > accuracy.SILENT_AXIS_DEG
+                and not (f["sigma_deg"] is not None and f["sigma_deg"] > limit)):
             sigma_text = "-" if f["sigma_deg"] is None else f"{f['sigma_deg']:.2f}"
-            print(f"  SILENT seed {f['seed']} pose {f['pose']}: axis {s['axis_deg']:.2f} deg, sigma {sigma_text} deg, "
-                  f"planes {f.get('plane_angle_deg', math.nan):.1f} deg; "
+            print(f"  SILENT at {limit} deg: seed {f['seed']} pose {f['pose']}: axis {s['axis_deg']:.2f} deg, "
+                  f"sigma {sigma_text} deg, planes {f.get('plane_angle_deg', math.nan):.1f} deg; "
                   + "; ".join(f"{n}: err {v['err_deg']:.2f} sigma {v['sigma_deg']:.2f} deg, L {v['length_px']:.1f} px, "
                               f"{v['pixels']} px, clutter {v['clutter']:.3f}" for n, v in zip("pq", f["views"])))
+
+
+def _flag_limit_text(frames: list[dict[str, Any]], limit_deg: float) -> str:
+    """One candidate ``max_axis_sigma_deg``: flagged fraction, silent failures, median axis of the rest,
+    and the silent failures per frame a calibrated sigma lets through (1D and isotropic error)."""
+    kept = [f for f in frames if f["score"]["ok"] and not f["score"]["ambiguous"] and f["score"]["axis_deg"] is not None
+            and not (f["sigma_deg"] is not None and f["sigma_deg"] > limit_deg)]
+    silent = sum(f["score"]["axis_deg"] > accuracy.SILENT_AXIS_DEG for f in kept)
+    k = np.array([accuracy.SILENT_AXIS_DEG / f["sigma_deg"] for f in kept if f["sigma_deg"]])
+    one_d = float(np.sum([math.erfc(x / math.sqrt(2.0)) for x in k])) / len(frames)
+    isotropic = float(np.sum(np.exp(-k ** 2 / 2.0))) / len(frames)
+    median = np.median([f["score"]["axis_deg"] for f in kept]) if kept else math.nan
+    return (f"limit {limit_deg:.2f} deg (5 deg = {accuracy.SILENT_AXIS_DEG / limit_deg:.2f} sigma): flagged "
+            f"{1.0 - len(kept) / len(frames):.3f}, silent {silent}, median axis {median:.3f} deg, expected silent "
+            f"per frame {one_d:.1e} (1D) to {isotropic:.1e} (isotropic)")
 
 
 def _seeds(text: str) -> list[int]:

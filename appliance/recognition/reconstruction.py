@@ -5,7 +5,9 @@ known traps):
 
 * centroid: the weighted image centroids, triangulated with the optimal (Hartley-Sturm) correction;
 * axis line: each view's 2D axis back-projects to a plane through its source that holds the 3D axis,
-  so the axis is the intersection of the two planes through the centroid. When the planes (nearly)
+  so the axis is the intersection of the two planes through the centroid. (The 2D axis is the blob's
+  principal direction in angles about the source, not in pixels: see
+  :func:`.reconstruction_kernels._plane_normal`.) When the planes (nearly)
   coincide - the axis lies in an epipolar plane - the line's direction inside that plane comes from the
   triangulated tips of the chosen pairing instead, and the pairing must come from the A/B test, the
   head's asymmetry or the previous frames (the frame is then flagged ``ambiguous``);
@@ -85,7 +87,9 @@ def _unit(v: np.ndarray) -> np.ndarray:
 
 
 def axis_plane(view: View, feat: Features2D) -> np.ndarray:
-    """The plane ``(n, d)`` through the view's source and the 2D axis line of ``feat``."""
+    """The plane ``(n, d)`` through the view's source and the 2D axis line of ``feat`` (its pixel axis: the
+    paper's method and the declutter use it; the default method's planes take the principal direction
+    in angles, :func:`.reconstruction_kernels._plane_normal`)."""
     half = max(2.0, math.sqrt(max(feat.eigenvalues[0], 0.0)))
     return view.backproject_plane(feat.centroid - half * feat.axis, feat.centroid + half * feat.axis)
 

@@ -92,14 +92,58 @@ def _line_angle_deg(a0: float, a1: float, a2: float, b0: float, b1: float, b2: f
 
 
 @kernel
-def _plane_normal(G: np.ndarray, o: int, c: np.ndarray, axis: np.ndarray, eig0: float, out: np.ndarray) -> bool:
-    """Unit normal of the plane through the view's source and its 2D axis line (as reconstruction.axis_plane)."""
-    half = max(2.0, math.sqrt(max(eig0, 0.0)))
-    ua, va = ideal_pixel(G, o, c[0] - half * axis[0], c[1] - half * axis[1])
-    ub, vb = ideal_pixel(G, o, c[0] + half * axis[0], c[1] + half * axis[1])
-    a0, a1, a2 = ray_direction(G, o, ua, va)
-    b0, b1, b2 = ray_direction(G, o, ub, vb)
-    n0, n1, n2 = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+def _plane_normal(G: np.ndarray, o: int, c: np.ndarray, axis: np.ndarray, eig0: float, eig1: float,
+                  out: np.ndarray) -> bool:
+    """Unit normal of the plane through the view's source and the blob's axis, its principal direction
+    taken in angles about the source rather than in pixels.
+
+    The image of a rod is mirror-symmetric about its axis in the directions of the rays (a reflection
+    through the plane of the source and the axis maps rays to rays), not on the pixel grid: pixels that
+    are not square (this calibration's ``fx`` and ``fy`` differ by 1 %), distortion and an oblique ray
+    stretch the image unevenly, which turns a stubby blob's principal axis off the axis' image by up to
+    ``stretch * l2 / (l1 - l2)`` (robot 4 seen foreshortened: l2 / (l1 - l2) ~ 1-3, tenths of a degree).
+    So the blob's second moments ``l1 v v^T + l2 w w^T`` (px^2, ``v`` = ``axis``) are carried by the ray
+    directions' derivatives at the centroid onto the plane perpendicular to its ray, and the normal is
+    the ray's cross product with their principal direction there (with square pixels and no distortion
+    at the image centre, the pixels' own axis)."""
+    step = max(2.0, math.sqrt(max(eig0, 0.0)))
+    u, v = c[0], c[1]
+    iu, iv = ideal_pixel(G, o, u, v)
+    r0, r1, r2 = ray_direction(G, o, iu, iv)
+    iu, iv = ideal_pixel(G, o, u + step, v)
+    px0, px1, px2 = ray_direction(G, o, iu, iv)
+    iu, iv = ideal_pixel(G, o, u - step, v)
+    mx0, mx1, mx2 = ray_direction(G, o, iu, iv)
+    iu, iv = ideal_pixel(G, o, u, v + step)
+    py0, py1, py2 = ray_direction(G, o, iu, iv)
+    iu, iv = ideal_pixel(G, o, u, v - step)
+    my0, my1, my2 = ray_direction(G, o, iu, iv)
+    v0, v1 = axis[0], axis[1]
+    # The ray's change per pixel along the axis (a) and across it (b).
+    a0 = ((px0 - mx0) * v0 + (py0 - my0) * v1) / (2.0 * step)
+    a1 = ((px1 - mx1) * v0 + (py1 - my1) * v1) / (2.0 * step)
+    a2 = ((px2 - mx2) * v0 + (py2 - my2) * v1) / (2.0 * step)
+    b0 = (-(px0 - mx0) * v1 + (py0 - my0) * v0) / (2.0 * step)
+    b1 = (-(px1 - mx1) * v1 + (py1 - my1) * v0) / (2.0 * step)
+    b2 = (-(px2 - mx2) * v1 + (py2 - my2) * v0) / (2.0 * step)
+    na = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+    if na < 1e-15:
+        return False
+    e0, e1, e2 = a0 / na, a1 / na, a2 / na
+    bx = b0 * e0 + b1 * e1 + b2 * e2
+    f0, f1, f2 = b0 - bx * e0, b1 - bx * e1, b2 - bx * e2
+    by = math.sqrt(f0 * f0 + f1 * f1 + f2 * f2)
+    if by > 0.0:
+        f0, f1, f2 = f0 / by, f1 / by, f2 / by
+    # The moments in the orthonormal tangent basis (e, f): l1 (a a^T) + l2 (b b^T); their principal direction.
+    l1, l2 = max(eig0, 0.0), max(eig1, 0.0)
+    sxx = l1 * na * na + l2 * bx * bx
+    sxy = l2 * bx * by
+    syy = l2 * by * by
+    angle = 0.5 * math.atan2(2.0 * sxy, sxx - syy)
+    ca, sa = math.cos(angle), math.sin(angle)
+    d0, d1, d2 = ca * e0 + sa * f0, ca * e1 + sa * f1, ca * e2 + sa * f2
+    n0, n1, n2 = r1 * d2 - r2 * d1, r2 * d0 - r0 * d2, r0 * d1 - r1 * d0
     norm = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
     if norm < 1e-12:
         return False
@@ -171,9 +215,9 @@ def weighted_front(G: np.ndarray, cp: np.ndarray, axp: np.ndarray, tp: np.ndarra
     # The two axis planes.
     n_p = np.empty(3)
     n_q = np.empty(3)
-    if not _plane_normal(G, 0, cp, axp, eig_p0, n_p):
+    if not _plane_normal(G, 0, cp, axp, eig_p0, eig_p1, n_p):
         return STATUS_PLANE_P
-    if not _plane_normal(G, q, cq, axq, eig_q0, n_q):
+    if not _plane_normal(G, q, cq, axq, eig_q0, eig_q1, n_q):
         return STATUS_PLANE_Q
     x0 = n_p[1] * n_q[2] - n_p[2] * n_q[1]
     x1 = n_p[2] * n_q[0] - n_p[0] * n_q[2]

@@ -119,8 +119,14 @@ class RecognitionSettings(StrictModel):
     axis_floor_rad: float = Field(0.001, gt=0)
     #: A view whose image is less elongated than this (l1 / l2) gives no axis plane (robot seen end-on).
     min_view_elongation: float = Field(1.3, ge=1)
-    #: A frame whose 3D axis is more uncertain than this (from the image noise) is flagged ambiguous.
-    max_axis_sigma_deg: float = Field(2.5, gt=0)
+    #: A frame whose 3D axis is more uncertain than this (from the image noise) is flagged ambiguous: a
+    #: third of the 5 deg an unflagged frame may be off. The 3D sigma is calibrated (robot 4, dev seeds 1-20:
+    #: RMS error / sigma 0.9-1.1 in every sigma range up to 2.5 deg), so an unflagged frame is off by 5 deg
+    #: with a chance of at most exp(-(10/3)^2 / 2) = 0.4 % (the error isotropic about the axis; 0.09 % where
+    #: one direction dominates), and over all frames 5e-6 to 3e-5 (2e-4 with sigma 20 % too small), against
+    #: 1e-3 to 3e-3 at 2.5 deg, which let 2-4 sigma errors through unflagged (dev seed 19 pose 23: 6.4 deg,
+    #: sigma 1.6). It flags robot 4 7 % more often (0.37 -> 0.44); benchmarks/axis_sigma_calibration.py.
+    max_axis_sigma_deg: float = Field(1.5, gt=0)
     #: Noise (px) of a tip along the axis, which weighs the tips' direction against the axis planes.
     tip_sigma_px: float = Field(0.7, gt=0)
     #: ... plus this fraction of the image's width times the cosine of the ray-axis angle: the end face's
