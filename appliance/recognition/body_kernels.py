@@ -26,7 +26,7 @@ import numpy as np
 
 from appliance.compiled import kernel, register_warm_up
 from appliance.geometry_kernels import _K, _SRC, VIEW_SIZE
-from appliance.recognition.reconstruction_kernels import _ray_line_b
+from appliance.recognition.reconstruction_kernels import _plane_normal, _ray_line_b
 
 # The method's constants (see :mod:`.body_prior`'s docstring for the method).
 #: Noise (px along the image axis, on a clean view seen side-on) of the moment centroid and of a flat
@@ -67,6 +67,14 @@ LENGTH_SIGMAS = 4.0
 #: The ends' order is taken from the body's offset where one order fits the ends better by this much
 #: (chi-square), with the head not identified.
 ORDER_CHI2 = 25.0
+#: Noise (px, across the image axis) of where a view's 2D axis line passes its centroid: the moment
+#: centroid's (:data:`CENTROID_SIGMA_PX`), which the line goes through.
+AXIS_LINE_SIGMA_PX = CENTROID_SIGMA_PX
+#: The axis planes move the centroid only where the 3D axis is known to this (its sigma, rad): beyond it
+#: (the frame is flagged, ``settings.max_axis_sigma_deg``'s default) a view's plane is as uncertain as its
+#: 2D axis, and on the dev seeds (robots 3 and 7) the planes' line moved such centroids as often away from
+#: the truth as towards it (robot 7 seed 14 pose 7, axis 11 deg uncertain: 0.33 -> 1.42 mm).
+AXIS_PLANES_MAX_SIGMA_RAD = math.radians(2.5)
 
 # ``inp``: centroid (3), direction (3), then per view IN_VIEW_SIZE numbers from IN_VIEW, then the tail.
 IN_CENTROID = 0
@@ -272,13 +280,89 @@ def _disagreement(e: np.ndarray) -> tuple[float, int, int, float]:
 
 
 @kernel
+def _onto_axis_planes(G: np.ndarray, inp: np.ndarray, centroid_sigma: float, c: np.ndarray) -> None:
+    """The posture's centroid moved, across its axis, onto the line where the views' axis planes meet, into
+    ``c`` (3).
+
+    Each view's 2D axis line goes through its moment centroid and back-projects to a plane holding the 3D
+    axis; the triangulated centroid lies on both only where the two image centroids are images of one
+    point. Where one of them slid along its image axis (over another structure: the background under the
+    body slopes along it), the optimal correction shares that slide between the views and the point
+    leaves the axis, across it as well as along it (dev seeds: 0.1-0.25 mm across on robot 3 over the
+    vessel, where the planes' line was within 0.01-0.05 mm of the truth). Along the axis the body's
+    evidence places it (:func:`place`); across it, the shift ``delta`` (perpendicular to the direction) is
+    the least-squares one that puts the point in both planes, each plane's offset weighted by
+    :data:`AXIS_LINE_SIGMA_PX` of its view, with ``|delta|`` held to the moment centroid's own sigma
+    (``centroid_sigma``, mm): where the planes nearly coincide (an axis near an epipolar plane) the
+    component they leave open stays where the triangulation put it. Not where the axis is uncertain
+    (:data:`AXIS_PLANES_MAX_SIGMA_RAD`)."""
+    u = inp[IN_DIRECTION:IN_DIRECTION + 3]
+    for i in range(3):
+        c[i] = inp[IN_CENTROID + i]
+    # An orthonormal basis (a, w) of the plane across the axis.
+    if abs(u[0]) < 0.9:
+        a0, a1, a2 = 0.0, u[2], -u[1]
+    else:
+        a0, a1, a2 = -u[2], 0.0, u[0]
+    na = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+    if not na > 0 or not centroid_sigma > 0 or not inp[IN_AXIS_SIGMA] <= AXIS_PLANES_MAX_SIGMA_RAD:
+        return
+    a0, a1, a2 = a0 / na, a1 / na, a2 / na
+    w0, w1, w2 = u[1] * a2 - u[2] * a1, u[2] * a0 - u[0] * a2, u[0] * a1 - u[1] * a0
+    prior = 1.0 / (centroid_sigma * centroid_sigma)
+    m00, m01, m11, r0, r1 = prior, 0.0, prior, 0.0, 0.0
+    normal = np.empty(2 * 3)
+    axis2 = np.empty(2)
+    centre2 = np.empty(2)
+    for view in range(2):
+        i = IN_VIEW + view * IN_VIEW_SIZE
+        if inp[i + V_PRESENT] == 0.0:
+            continue
+        o = view * VIEW_SIZE
+        du = inp[i + V_TIPS] - inp[i + V_TIPS + 2]
+        dv = inp[i + V_TIPS + 1] - inp[i + V_TIPS + 3]
+        span = math.sqrt(du * du + dv * dv)
+        if not span > 0:
+            continue
+        axis2[0], axis2[1] = du / span, dv / span
+        centre2[0], centre2[1] = inp[i + V_CENTROID], inp[i + V_CENTROID + 1]
+        n = normal[3 * view:3 * view + 3]
+        if not _plane_normal(G, o, centre2, axis2, 0.25 * span * span, n):
+            continue
+        s0, s1, s2 = G[o + _SRC], G[o + _SRC + 1], G[o + _SRC + 2]
+        offset = n[0] * (s0 - c[0]) + n[1] * (s1 - c[1]) + n[2] * (s2 - c[2])   # the plane's, from the point
+        x0, x1, x2 = s0 - c[0], s1 - c[1], s2 - c[2]
+        sigma = AXIS_LINE_SIGMA_PX * math.sqrt(x0 * x0 + x1 * x1 + x2 * x2) / G[o + _K]
+        weight = 1.0 / (sigma * sigma)
+        pa = n[0] * a0 + n[1] * a1 + n[2] * a2
+        pw = n[0] * w0 + n[1] * w1 + n[2] * w2
+        m00 += weight * pa * pa
+        m01 += weight * pa * pw
+        m11 += weight * pw * pw
+        r0 += weight * pa * offset
+        r1 += weight * pw * offset
+    det = m00 * m11 - m01 * m01
+    if not det > 0:
+        return
+    da = (m11 * r0 - m01 * r1) / det
+    dw = (m00 * r1 - m01 * r0) / det
+    c[0] += da * a0 + dw * w0
+    c[1] += da * a1 + dw * w1
+    c[2] += da * a2 + dw * w2
+
+
+@kernel
 def place(G: np.ndarray, inp: np.ndarray, body: np.ndarray, out: np.ndarray) -> None:
     """The body placed on the posture's axis, and the checks' verdict, into ``out`` (see the module
-    docstring and :func:`.body_prior.place_body`)."""
+    docstring and :func:`.body_prior.place_body`): the centroid first moved across the axis onto the views'
+    axis planes (:func:`_onto_axis_planes`), then along it by the body's evidence."""
+    rows = np.empty((2, _E_SIZE))
+    _evidence(G, inp, body, 0, rows[0])   # (the moment centroid's sigma)
+    inp = inp.copy()
+    _onto_axis_planes(G, inp, rows[0, _E_CORE_S] if rows[0, _E_CORE_N] > 0 else 0.0, inp[IN_CENTROID:IN_CENTROID + 3])
     c = inp[IN_CENTROID:IN_CENTROID + 3]
     u = inp[IN_DIRECTION:IN_DIRECTION + 3]
     length, cft = body[B_LENGTH], body[B_CENTROID_FROM_TAIL]
-    rows = np.empty((2, _E_SIZE))
     chosen = 0
     if inp[IN_HEAD_IDENTIFIED] != 0.0:
         _evidence(G, inp, body, 0, rows[0])
