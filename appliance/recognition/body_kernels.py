@@ -364,6 +364,7 @@ def place(G: np.ndarray, inp: np.ndarray, body: np.ndarray, out: np.ndarray) -> 
     u = inp[IN_DIRECTION:IN_DIRECTION + 3]
     length, cft = body[B_LENGTH], body[B_CENTROID_FROM_TAIL]
     chosen = 0
+    ordered = False   # the order undecided, the tips placed either side of the centroid
     if inp[IN_HEAD_IDENTIFIED] != 0.0:
         _evidence(G, inp, body, 0, rows[0])
         b, _ = _combine(rows[0])
@@ -382,7 +383,8 @@ def place(G: np.ndarray, inp: np.ndarray, body: np.ndarray, out: np.ndarray) -> 
         b1, chi1 = _combine(rows[1])
         chosen = 1 if chi1 < chi0 else 0   # a stable sort by chi-square
         b, chi2, other = (b1, chi1, chi0) if chosen == 1 else (b0, chi0, chi1)
-        placed = rows[chosen, _E_CORE_N] > 1 and other - chi2 >= ORDER_CHI2
+        ordered = rows[chosen, _E_CORE_N] > 1
+        placed = ordered and other - chi2 >= ORDER_CHI2
         if placed:
             sign = 1.0 if chosen == 0 else -1.0   # +u points to the head under this order
             first = 0 if chosen == 0 else 3   # where the head goes among the tips
@@ -392,10 +394,20 @@ def place(G: np.ndarray, inp: np.ndarray, body: np.ndarray, out: np.ndarray) -> 
                 out[OUT_CENTROID + i] = centroid
                 out[OUT_TIPS + first + i] = tail + sign * length * u[i]
                 out[OUT_TIPS + 3 - first + i] = tail
+        elif ordered:
+            # Undecided: each tip where it errs least whichever end is the head, the body's half length
+            # either side of the moment centroid (both orders' ends averaged): each within the body's offset
+            # asymmetry (L / 2 - centroid_from_tail: robot 7 0.9 mm, robot 3 2.4 mm) of the truth. The
+            # measured ends err by 0 and ~0.7 of the cone (an apex measured as a flat end: 2 and 5 mm), or,
+            # where the head claim was withheld, by the cone-model tip put at the wrong end as well.
+            for i in range(3):
+                out[OUT_CENTROID + i] = c[i]
+                out[OUT_TIPS + i] = c[i] + 0.5 * length * u[i]
+                out[OUT_TIPS + 3 + i] = c[i] - 0.5 * length * u[i]
         else:
             out[OUT_CENTROID:OUT_PLACED] = math.nan
     e = rows[chosen]
-    out[OUT_PLACED] = 1.0 if placed else 0.0
+    out[OUT_PLACED] = 1.0 if placed or ordered else 0.0
     out[OUT_FLAG] = FLAG_NONE
     out[OUT_WHAT] = math.nan
     out[OUT_OFF] = math.nan
@@ -409,7 +421,8 @@ def place(G: np.ndarray, inp: np.ndarray, body: np.ndarray, out: np.ndarray) -> 
             out[OUT_WHAT] = what
             out[OUT_OFF] = off
     elif math.isfinite(measured):
-        # The measured tips are kept: a length off the body's beyond their noise means they are off.
+        # The order is undecided (the tips placed either side of the centroid, or the measured ones kept): a
+        # measured length off the body's beyond the ends' noise means a measured end is off.
         noise = math.hypot(e[_E_SIGMA_HEAD], e[_E_SIGMA_TAIL])
         out[OUT_NOISE] = noise
         if abs(measured - length) > LENGTH_SIGMAS * noise:
