@@ -84,6 +84,18 @@ def test_an_end_over_a_vessel_is_outvoted_by_the_clean_evidence(calibration: Cal
     assert np.linalg.norm(blind.centroid_mm - c) > np.linalg.norm(placed.centroid_mm - c)
 
 
+def test_over_a_vessel_the_tails_outweigh_a_slid_centroid(calibration: Calibration, robot6: BodyModel) -> None:
+    c, u, head, tail = _truth(robot6, (2.0, -3.0, 4.0), (0.6, -0.3, 0.74))
+    # Both views over a vessel: the moment centroid slid 0.4 mm along the axis, both tails stayed put (their
+    # ends' neighbourhoods show some structure too).
+    posture = _posture(calibration, c, u, head, tail, centroid_shift_mm=0.4)
+    placed = place_body(calibration, posture, robot6, SETTINGS, {"p": 0.3, "q": 0.25}, 0.0,
+                        {"p": (0.01, 0.1), "q": (0.01, 0.1)})
+    # The tails' sigma grows less with the clutter than the centroid's: most of the slide is undone.
+    assert np.linalg.norm(placed.centroid_mm - c) < 0.12
+    assert np.linalg.norm(placed.tips_mm[1] - tail) < 0.12
+
+
 def test_a_fresh_posture_is_placed_in_place_as_a_copy_would_be(calibration: Calibration, robot6: BodyModel) -> None:
     # fresh=True (the tracker's own new posture): the same numbers in every field as the copy place_body makes
     # otherwise, on the posture given itself; without it the posture given is left as it was.
