@@ -26,7 +26,7 @@ import numpy as np
 
 from appliance.compiled import kernel, register_warm_up
 from appliance.geometry_kernels import _K, _SRC, VIEW_SIZE
-from appliance.recognition.reconstruction_kernels import _ray_line_b
+from appliance.recognition.reconstruction_kernels import _plane_normal, _ray_line_b
 
 # The method's constants (see :mod:`.body_prior`'s docstring for the method).
 #: Noise (px along the image axis, on a clean view seen side-on) of the moment centroid and of a flat
@@ -50,6 +50,12 @@ RIM_POWER = 6
 CENTROID_CLUTTER_GAIN = 4.0
 VIEW_CLUTTER_GAIN = 4.0
 END_CLUTTER_GAIN = 4.0
+#: On a frame over another structure (a view's clutter above max_clutter), a flat tail's inflation above its
+#: clean sigma is this fraction of the gains' (the apexes' and the centroid's stay). Measured on dev seeds
+#: 1-20 (robots 1, 2, 3, 5, 7, head right): there the gains made the tails' errors 0.18 of their sigma (RMS)
+#: and the moment centroid's 0.47, so the centroid, sliding with the background under the whole body
+#: (0.15 mm RMS, robot 3 0.2-0.5 mm), outweighed tails that stayed put (0.14 mm RMS).
+CLUTTERED_TAIL_INFLATION = 0.3
 #: An apex estimate joins only if it lies within this many sigmas of the centroid's and tails' mean: the
 #: apex's errors have heavy tails (a faint cone lost to noise or run on into a vessel: 1-3 mm).
 APEX_GATE_SIGMAS = 3.0
@@ -67,6 +73,14 @@ LENGTH_SIGMAS = 4.0
 #: The ends' order is taken from the body's offset where one order fits the ends better by this much
 #: (chi-square), with the head not identified.
 ORDER_CHI2 = 25.0
+#: Noise (px, across the image axis) of where a view's 2D axis line passes its centroid: the moment
+#: centroid's (:data:`CENTROID_SIGMA_PX`), which the line goes through.
+AXIS_LINE_SIGMA_PX = CENTROID_SIGMA_PX
+#: The axis planes move the centroid only where the 3D axis is known to this (its sigma, rad): beyond it
+#: (the frame is flagged, ``settings.max_axis_sigma_deg``'s default) a view's plane is as uncertain as its
+#: 2D axis, and on the dev seeds (robots 3 and 7) the planes' line moved such centroids as often away from
+#: the truth as towards it (robot 7 seed 14 pose 7, axis 11 deg uncertain: 0.33 -> 1.42 mm).
+AXIS_PLANES_MAX_SIGMA_RAD = math.radians(2.5)
 
 # ``inp``: centroid (3), direction (3), then per view IN_VIEW_SIZE numbers from IN_VIEW, then the tail.
 IN_CENTROID = 0
@@ -135,6 +149,12 @@ def _evidence(G: np.ndarray, inp: np.ndarray, body: np.ndarray, head_end: int, e
     weight_tail = 0.0
     sin2_sum, mm_sum, views = 0.0, 0.0, 0
     worst = 0.0
+    # (a frame over another structure: the tails' inflation is scaled, CLUTTERED_TAIL_INFLATION)
+    cluttered = False
+    for view in range(2):
+        i = IN_VIEW + view * IN_VIEW_SIZE
+        if inp[i + V_PRESENT] != 0.0 and inp[i + V_CLUTTER] > max_clutter:
+            cluttered = True
     n_core, n_apex = 1, 0   # the moment centroid's slot first
     for view in range(2):
         i = IN_VIEW + view * IN_VIEW_SIZE
@@ -158,6 +178,8 @@ def _evidence(G: np.ndarray, inp: np.ndarray, body: np.ndarray, head_end: int, e
             head = end == head_end
             local = inp[i + V_ENDS + end]
             inflation = view_gain + (END_CLUTTER_GAIN * local / max_clutter if math.isfinite(local) else 1e6)
+            if cluttered and not head:
+                inflation = 1.0 + CLUTTERED_TAIL_INFLATION * (inflation - 1.0)
             tilt = abs(b) * axis_sigma * math.sqrt(max(1.0 - sine * sine, 0.0)) / max(sine, 1e-3)
             sigma = math.hypot(_end_sigma_mm(head, cone, diameter, mm_per_px, sine, inflation), tilt)
             clean = math.hypot(_end_sigma_mm(head, cone, diameter, mm_per_px, sine, 1.0), tilt)
@@ -272,14 +294,91 @@ def _disagreement(e: np.ndarray) -> tuple[float, int, int, float]:
 
 
 @kernel
+def _onto_axis_planes(G: np.ndarray, inp: np.ndarray, centroid_sigma: float, c: np.ndarray) -> None:
+    """The posture's centroid moved, across its axis, onto the line where the views' axis planes meet, into
+    ``c`` (3).
+
+    Each view's 2D axis line goes through its moment centroid and back-projects to a plane holding the 3D
+    axis; the triangulated centroid lies on both only where the two image centroids are images of one
+    point. Where one of them slid along its image axis (over another structure: the background under the
+    body slopes along it), the optimal correction shares that slide between the views and the point
+    leaves the axis, across it as well as along it (dev seeds: 0.1-0.25 mm across on robot 3 over the
+    vessel, where the planes' line was within 0.01-0.05 mm of the truth). Along the axis the body's
+    evidence places it (:func:`place`); across it, the shift ``delta`` (perpendicular to the direction) is
+    the least-squares one that puts the point in both planes, each plane's offset weighted by
+    :data:`AXIS_LINE_SIGMA_PX` of its view, with ``|delta|`` held to the moment centroid's own sigma
+    (``centroid_sigma``, mm): where the planes nearly coincide (an axis near an epipolar plane) the
+    component they leave open stays where the triangulation put it. Not where the axis is uncertain
+    (:data:`AXIS_PLANES_MAX_SIGMA_RAD`)."""
+    u = inp[IN_DIRECTION:IN_DIRECTION + 3]
+    for i in range(3):
+        c[i] = inp[IN_CENTROID + i]
+    # An orthonormal basis (a, w) of the plane across the axis.
+    if abs(u[0]) < 0.9:
+        a0, a1, a2 = 0.0, u[2], -u[1]
+    else:
+        a0, a1, a2 = -u[2], 0.0, u[0]
+    na = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+    if not na > 0 or not centroid_sigma > 0 or not inp[IN_AXIS_SIGMA] <= AXIS_PLANES_MAX_SIGMA_RAD:
+        return
+    a0, a1, a2 = a0 / na, a1 / na, a2 / na
+    w0, w1, w2 = u[1] * a2 - u[2] * a1, u[2] * a0 - u[0] * a2, u[0] * a1 - u[1] * a0
+    prior = 1.0 / (centroid_sigma * centroid_sigma)
+    m00, m01, m11, r0, r1 = prior, 0.0, prior, 0.0, 0.0
+    normal = np.empty(2 * 3)
+    axis2 = np.empty(2)
+    centre2 = np.empty(2)
+    for view in range(2):
+        i = IN_VIEW + view * IN_VIEW_SIZE
+        if inp[i + V_PRESENT] == 0.0:
+            continue
+        o = view * VIEW_SIZE
+        du = inp[i + V_TIPS] - inp[i + V_TIPS + 2]
+        dv = inp[i + V_TIPS + 1] - inp[i + V_TIPS + 3]
+        span = math.sqrt(du * du + dv * dv)
+        if not span > 0:
+            continue
+        axis2[0], axis2[1] = du / span, dv / span
+        centre2[0], centre2[1] = inp[i + V_CENTROID], inp[i + V_CENTROID + 1]
+        n = normal[3 * view:3 * view + 3]
+        if not _plane_normal(G, o, centre2, axis2, 0.25 * span * span, n):
+            continue
+        s0, s1, s2 = G[o + _SRC], G[o + _SRC + 1], G[o + _SRC + 2]
+        offset = n[0] * (s0 - c[0]) + n[1] * (s1 - c[1]) + n[2] * (s2 - c[2])   # the plane's, from the point
+        x0, x1, x2 = s0 - c[0], s1 - c[1], s2 - c[2]
+        sigma = AXIS_LINE_SIGMA_PX * math.sqrt(x0 * x0 + x1 * x1 + x2 * x2) / G[o + _K]
+        weight = 1.0 / (sigma * sigma)
+        pa = n[0] * a0 + n[1] * a1 + n[2] * a2
+        pw = n[0] * w0 + n[1] * w1 + n[2] * w2
+        m00 += weight * pa * pa
+        m01 += weight * pa * pw
+        m11 += weight * pw * pw
+        r0 += weight * pa * offset
+        r1 += weight * pw * offset
+    det = m00 * m11 - m01 * m01
+    if not det > 0:
+        return
+    da = (m11 * r0 - m01 * r1) / det
+    dw = (m00 * r1 - m01 * r0) / det
+    c[0] += da * a0 + dw * w0
+    c[1] += da * a1 + dw * w1
+    c[2] += da * a2 + dw * w2
+
+
+@kernel
 def place(G: np.ndarray, inp: np.ndarray, body: np.ndarray, out: np.ndarray) -> None:
     """The body placed on the posture's axis, and the checks' verdict, into ``out`` (see the module
-    docstring and :func:`.body_prior.place_body`)."""
+    docstring and :func:`.body_prior.place_body`): the centroid first moved across the axis onto the views'
+    axis planes (:func:`_onto_axis_planes`), then along it by the body's evidence."""
+    rows = np.empty((2, _E_SIZE))
+    _evidence(G, inp, body, 0, rows[0])   # (the moment centroid's sigma)
+    inp = inp.copy()
+    _onto_axis_planes(G, inp, rows[0, _E_CORE_S] if rows[0, _E_CORE_N] > 0 else 0.0, inp[IN_CENTROID:IN_CENTROID + 3])
     c = inp[IN_CENTROID:IN_CENTROID + 3]
     u = inp[IN_DIRECTION:IN_DIRECTION + 3]
     length, cft = body[B_LENGTH], body[B_CENTROID_FROM_TAIL]
-    rows = np.empty((2, _E_SIZE))
     chosen = 0
+    ordered = False   # the order undecided, the tips placed either side of the centroid
     if inp[IN_HEAD_IDENTIFIED] != 0.0:
         _evidence(G, inp, body, 0, rows[0])
         b, _ = _combine(rows[0])
@@ -298,7 +397,8 @@ def place(G: np.ndarray, inp: np.ndarray, body: np.ndarray, out: np.ndarray) -> 
         b1, chi1 = _combine(rows[1])
         chosen = 1 if chi1 < chi0 else 0   # a stable sort by chi-square
         b, chi2, other = (b1, chi1, chi0) if chosen == 1 else (b0, chi0, chi1)
-        placed = rows[chosen, _E_CORE_N] > 1 and other - chi2 >= ORDER_CHI2
+        ordered = rows[chosen, _E_CORE_N] > 1
+        placed = ordered and other - chi2 >= ORDER_CHI2
         if placed:
             sign = 1.0 if chosen == 0 else -1.0   # +u points to the head under this order
             first = 0 if chosen == 0 else 3   # where the head goes among the tips
@@ -308,10 +408,20 @@ def place(G: np.ndarray, inp: np.ndarray, body: np.ndarray, out: np.ndarray) -> 
                 out[OUT_CENTROID + i] = centroid
                 out[OUT_TIPS + first + i] = tail + sign * length * u[i]
                 out[OUT_TIPS + 3 - first + i] = tail
+        elif ordered:
+            # Undecided: each tip where it errs least whichever end is the head, the body's half length
+            # either side of the moment centroid (both orders' ends averaged): each within the body's offset
+            # asymmetry (L / 2 - centroid_from_tail: robot 7 0.9 mm, robot 3 2.4 mm) of the truth. The
+            # measured ends err by 0 and ~0.7 of the cone (an apex measured as a flat end: 2 and 5 mm), or,
+            # where the head claim was withheld, by the cone-model tip put at the wrong end as well.
+            for i in range(3):
+                out[OUT_CENTROID + i] = c[i]
+                out[OUT_TIPS + i] = c[i] + 0.5 * length * u[i]
+                out[OUT_TIPS + 3 + i] = c[i] - 0.5 * length * u[i]
         else:
             out[OUT_CENTROID:OUT_PLACED] = math.nan
     e = rows[chosen]
-    out[OUT_PLACED] = 1.0 if placed else 0.0
+    out[OUT_PLACED] = 1.0 if placed or ordered else 0.0
     out[OUT_FLAG] = FLAG_NONE
     out[OUT_WHAT] = math.nan
     out[OUT_OFF] = math.nan
@@ -325,7 +435,8 @@ def place(G: np.ndarray, inp: np.ndarray, body: np.ndarray, out: np.ndarray) -> 
             out[OUT_WHAT] = what
             out[OUT_OFF] = off
     elif math.isfinite(measured):
-        # The measured tips are kept: a length off the body's beyond their noise means they are off.
+        # The order is undecided (the tips placed either side of the centroid, or the measured ones kept): a
+        # measured length off the body's beyond the ends' noise means a measured end is off.
         noise = math.hypot(e[_E_SIGMA_HEAD], e[_E_SIGMA_TAIL])
         out[OUT_NOISE] = noise
         if abs(measured - length) > LENGTH_SIGMAS * noise:

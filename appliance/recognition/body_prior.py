@@ -17,6 +17,10 @@ That number is measured several ways, each with its own uncertainty:
   worst feature of all). An end is affected only by what lies near it (:func:`end_clutter`), so where
   a vessel crosses one end or the middle of the body, the other end still places the body.
 
+Over another structure each sigma grows with the clutter; a flat tail's growth is scaled down
+(:data:`.body_kernels.CLUTTERED_TAIL_INFLATION`): the moment centroid slides with the background under the
+whole body, a tail's step moves little (dev seeds: their errors were 0.47 and 0.18 of the sigmas before).
+
 The estimates are combined by inverse variance (:func:`place_body`): independent measurements of one
 number, each Gaussian to first order, so that is their maximum-likelihood mean and the sigmas
 decide, not a fixed rule per case. The apexes join only where they agree with the centroid and tails
@@ -24,14 +28,22 @@ decide, not a fixed rule per case. The apexes join only where they agree with th
 noise, one of them ran on into a vessel, lost part of the body to it or slid with the background under
 it, and the place along the axis is in doubt: the frame is flagged ambiguous with the estimate at odds,
 never hidden. (The measured length says the same only where the apex is not the end that is off; where
-the measured tips are kept, a length off the body's flags the frame.)
+the order stays undecided, a measured length off the body's flags the frame.)
+
+Before that, the centroid is moved across the axis onto the line where the views' axis planes meet
+(:func:`.body_kernels._onto_axis_planes`): each view's 2D axis goes through its image centroid, so where one
+image centroid slid along its axis the triangulated point leaves the axis, across it as well as along it;
+the planes put it back (held to the moment centroid's sigma, and not on an axis uncertain beyond 2.5 deg).
 
 Where the head is not identified the tips' order is unknown, and so is the side of the centroid the
 body's offset lies on: the measured ends then choose between the two placements only where one fits
-decisively better (the head is still not claimed); otherwise the frame keeps its measured centroid and
-tips. (Both ends measured as flat, the apex's half-height crossing falls short of it by about the
+decisively better (the head is still not claimed); otherwise the frame keeps its measured place along
+the axis and its tips are put half the body's length either side of it, where each errs least whichever end is the
+head (by the offset asymmetry ``L / 2 - centroid_from_tail``; a measured apex end errs by ~0.7 of the
+cone). (Both ends measured as flat, the apex's half-height crossing falls short of it by about the
 body's offset asymmetry, so such frames mostly stay undecided. The tracker first tries each end measured
-as the cone's apex, :mod:`.head_by_body`: what reaches this unidentified, the body's shape could not tell.)
+as the cone's apex, :mod:`.head_by_body`: what reaches this unidentified, the body's shape could not tell.
+A body without a flat tail, robot 4, gives no order evidence and keeps its measured tips.)
 
 Applied to the :class:`.Posture` (both the tracker's general path and the steady state's plain frames
 build one, to the last bit the same) by one compiled kernel (:func:`.body_kernels.place`, issue 8: as
