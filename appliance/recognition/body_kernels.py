@@ -341,7 +341,7 @@ def _onto_axis_planes(G: np.ndarray, inp: np.ndarray, centroid_sigma: float, c: 
         axis2[0], axis2[1] = du / span, dv / span
         centre2[0], centre2[1] = inp[i + V_CENTROID], inp[i + V_CENTROID + 1]
         n = normal[3 * view:3 * view + 3]
-        if not _plane_normal(G, o, centre2, axis2, 0.25 * span * span, n):
+        if not _plane_normal(G, o, centre2, axis2, 0.25 * span * span, 0.0, n):
             continue
         s0, s1, s2 = G[o + _SRC], G[o + _SRC + 1], G[o + _SRC + 2]
         offset = n[0] * (s0 - c[0]) + n[1] * (s1 - c[1]) + n[2] * (s2 - c[2])   # the plane's, from the point
