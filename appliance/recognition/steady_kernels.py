@@ -153,11 +153,11 @@ def _roi(pu, pv, eu0, ev0, eu1, ev1, margin, h, w):  # pragma: no cover - compil
 #: The tight ROI (issue 8): where the last frame was the pair's, a view is first searched in the ROI around
 #: the same predicted body with this margin (px beyond the body's half width) plus its allowance for the
 #: prediction's error, ``2 x`` the last frame's error in that view ``+ 1`` px, where that is narrower than
-#: the ROI's (``roi_margin_px``). The refinement's own edge test keeps a body whose support and fill come
-#: within 3 px of the tight ROI's edge out (its side baselines, up to ~8 px beside the core, are clamped
-#: into the ROI there, as at the ROI's edge). The ROI's pixels are most of the attenuation's and the
-#: candidates' work (a third of the pair's, bench robot 1: 14 -> 8 px measured -22 us of ~170).
-TIGHT_MARGIN_PX = 6.0
+#: the ROI's (``roi_margin_px``) and the view's noise sigma is not measured this frame (it is measured on
+#: the ROI). The refinement's own edge test keeps a body whose support and fill come within 3 px of the
+#: tight ROI's edge out; its side baselines (up to ~8 px beside the core) are clamped into the ROI there,
+#: as at the ROI's edge. The ROI's pixels are most of the attenuation's and the candidates' work.
+TIGHT_MARGIN_PX = 7.0
 #: What the tight ROI's body must be, else the view is searched in the ROI as before: its centroid within
 #: the allowance + this many px of the prediction ...
 TIGHT_GATE_PX = 2.0
@@ -705,8 +705,9 @@ def search_pair(image_p, image_q, coarse_p, coarse_q, log_table, g, params, ring
             if lean:
                 x0, y0 = lx0, ly0
         found, via = lean, 1.0 if lean else 0.0
-        if not found and inp[IN_TIGHT] != 0.0 and inp[v + V_HAS_OUTLINE] != 0.0:
-            # The tight ROI first, where the last frame's prediction error allows one (NaN: it does not).
+        if not found and inp[IN_TIGHT] != 0.0 and inp[v + V_HAS_OUTLINE] != 0.0 and inp[v + V_KNOWN_SIGMA] > 0.0:
+            # The tight ROI first, where the last frame's prediction error allows one (NaN: it does not) and the
+            # noise sigma is known (it is measured on the ROI: its pixels, not the tight ROI's).
             allowance = 2.0 * prev[o + R_RESIDUAL] + 1.0
             tight = TIGHT_MARGIN_PX + allowance + half_width
             if tight < margin:
