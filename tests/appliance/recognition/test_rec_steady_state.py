@@ -194,26 +194,41 @@ def test_compiled_clutter_term_equals_the_python_one() -> None:
         assert a == b or (math.isnan(a) and math.isnan(b)), case
 
 
-def _tight_track(views: dict[str, object], calibration: Calibration, robot: int, centres: list[np.ndarray],
-                 direction: tuple[float, ...]) -> list[tuple[object, object, tuple[bool, bool]]]:
-    """Per frame: the posture with the tight ROI on, with it off, and which views the tight ROI found."""
+def _two_trackers(views: dict[str, object], calibration: Calibration, robot: int, centres: list[np.ndarray],
+                  direction: tuple[float, ...], first: RecognitionSettings, second: RecognitionSettings,
+                  used: object, body: bool = False) -> list[tuple[object, object, tuple[bool, bool]]]:
+    """Per frame of the robot at ``centres``: the posture of a tracker with settings ``first``, of one with
+    ``second`` (both given the robot's body if ``body``), and ``used(first tracker)``."""
     spec = load_robots()[robot]
-    body = RobotBody(spec.length_mm, spec.diameter_mm, spec.tip_angle_deg, spec.attenuation_per_mm)
+    shape = RobotBody(spec.length_mm, spec.diameter_mm, spec.tip_angle_deg, spec.attenuation_per_mm)
     vessel = VesselPhantom(smooth_centreline(S_BEND_CENTRELINE_MM), 2.5, 0.06)
-    renderer = BiplaneRenderer(views, body, vessel=vessel, settings=ImagingSettings(), seed=robot)
-    dark = ImagingSettings().dark_level
-    tight = PostureTracker(calibration, RecognitionSettings(dark_level=dark), body=spec)
-    wide = PostureTracker(calibration, RecognitionSettings(dark_level=dark, tight_roi=False), body=spec)
+    renderer = BiplaneRenderer(views, shape, vessel=vessel, settings=ImagingSettings(), seed=robot)
+    known = spec if body else None
+    a_tracker = PostureTracker(calibration, first, body=known)
+    b_tracker = PostureTracker(calibration, second, body=known)
     frames = []
     for n, centre in enumerate(centres):
         pair = renderer.render(RobotPose(centre, np.array(direction)))
-        a = tight.process(pair.images["p"], pair.images["q"], frame=n, t=n / 30.0)
-        b = wide.process(pair.images["p"], pair.images["q"], frame=n, t=n / 30.0)
-        out = tight._pair.out
-        used = ((out[R_LEAN] == 2.0, out[OUT_VIEW_SIZE + R_LEAN] == 2.0) if tight.last_search == "roi" and out.size
-                else (False, False))
-        frames.append((a, b, used))
+        a = a_tracker.process(pair.images["p"], pair.images["q"], frame=n, t=n / 30.0)
+        b = b_tracker.process(pair.images["p"], pair.images["q"], frame=n, t=n / 30.0)
+        frames.append((a, b, used(a_tracker)))  # type: ignore[operator]
     return frames
+
+
+def _tight_views(tracker: PostureTracker) -> tuple[bool, bool]:
+    """Which views the tracker's last steady pair found in the tight ROI."""
+    out = tracker._pair.out
+    if tracker.last_search != "roi" or not out.size:
+        return False, False
+    return bool(out[R_LEAN] == 2.0), bool(out[OUT_VIEW_SIZE + R_LEAN] == 2.0)
+
+
+def _tight_track(views: dict[str, object], calibration: Calibration, robot: int, centres: list[np.ndarray],
+                 direction: tuple[float, ...]) -> list[tuple[object, object, tuple[bool, bool]]]:
+    """Per frame: the posture with the tight ROI on, with it off, and which views the tight ROI found."""
+    dark = ImagingSettings().dark_level
+    return _two_trackers(views, calibration, robot, centres, direction, RecognitionSettings(dark_level=dark),
+                         RecognitionSettings(dark_level=dark, tight_roi=False), _tight_views, body=True)
 
 
 @pytest.mark.parametrize("robot,start,velocity,direction", [
@@ -259,21 +274,15 @@ def test_tight_roi_widens_where_the_body_moved_unexpectedly(views: dict[str, obj
 def _lean_track(views: dict[str, object], calibration: Calibration, robot: int, centres: list[np.ndarray],
                 direction: tuple[float, ...]) -> list[tuple[object, object, tuple[bool, bool]]]:
     """Per frame: the posture with the lean pass on, with it off, and which views the lean pass found."""
-    spec = load_robots()[robot]
-    body = RobotBody(spec.length_mm, spec.diameter_mm, spec.tip_angle_deg, spec.attenuation_per_mm)
-    vessel = VesselPhantom(smooth_centreline(S_BEND_CENTRELINE_MM), 2.5, 0.06)
-    renderer = BiplaneRenderer(views, body, vessel=vessel, settings=ImagingSettings(), seed=robot)
     dark = ImagingSettings().dark_level
-    lean = PostureTracker(calibration, RecognitionSettings(dark_level=dark, lean_steady_state=True))
-    full = PostureTracker(calibration, RecognitionSettings(dark_level=dark))
-    frames = []
-    for n, centre in enumerate(centres):
-        pair = renderer.render(RobotPose(centre, np.array(direction)))
-        a = lean.process(pair.images["p"], pair.images["q"], frame=n, t=n / 30.0)
-        b = full.process(pair.images["p"], pair.images["q"], frame=n, t=n / 30.0)
-        used = lean._pair.lean_views() if lean.last_search == "roi" and lean._lean_from is not None else (False, False)
-        frames.append((a, b, used))
-    return frames
+
+    def used(tracker: PostureTracker) -> tuple[bool, bool]:
+        return (tracker._pair.lean_views() if tracker.last_search == "roi" and tracker._lean_from is not None
+                else (False, False))
+
+    return _two_trackers(views, calibration, robot, centres, direction,
+                         RecognitionSettings(dark_level=dark, lean_steady_state=True),
+                         RecognitionSettings(dark_level=dark), used)
 
 
 def test_lean_pass_follows_a_clean_track_as_the_roi_search_does(views: dict[str, object],
