@@ -21,10 +21,12 @@ from scratch: every ok posture there is a made-up pose, and is listed.
 With ``--tracked`` each pose is instead measured on the steady-state path issue 8 makes fast: the
 tracker first sees the robot one step back (0.3 mm along a random direction, one frame period at
 30 fps earlier), so the measured frame is searched in regions of interest around the prediction;
-the script prints how many measured frames did go through that (ROI) path.
+the script prints how many measured frames did go through that (ROI) path. ``--history N`` (with
+``--tracked``) gives the tracker N such frames, each one step further back along the same direction
+(constant velocity), so that the measured frame follows tracked frames, as in steady tracking.
 
 Usage: ``python benchmarks/accuracy.py [--poses N] [--seed S] [--robots 1,2,...] [--empty N] [--tracked]
-[--no-body-prior] [--json FILE]``.
+[--history N] [--no-body-prior] [--json FILE]``.
 The trackers are given the robot (as the appliance's are), so its known body places the centroid and
 tips (:mod:`appliance.recognition.body_prior`); ``--no-body-prior`` measures the model-free pipeline.
 It prints a table and asserts nothing. The default seed is not one the tests use.
@@ -137,12 +139,13 @@ def summarise(scores: list[dict[str, Any]]) -> dict[str, Any]:
 
 def run_robot(robot_id: int, spec: Any, poses: list[RobotPose], seed: int, calibration: Calibration,
               views: dict[str, Any], phantom: VesselPhantom, imaging: ImagingSettings, tracked: bool = False,
-              body_prior: bool = True) -> tuple[dict[str, list[dict[str, Any]]], float]:
+              body_prior: bool = True, history: int = 1) -> tuple[dict[str, list[dict[str, Any]]], float]:
     """Per estimator, the scores of every pose, and the seconds spent recognising the measured frames.
 
     With ``tracked``, each pose is preceded by a frame of the robot one step back (``TRACK_STEP_MM``
     along a random direction, one frame period earlier), so the measured frame is recognised by the
     steady-state (ROI) path from that history; each score records which path it took (``search``).
+    ``history`` such frames precede it, one step apart (constant velocity; 1: the frame one step back).
     """
     body = RobotBody(spec.length_mm, spec.diameter_mm, spec.tip_angle_deg, spec.attenuation_per_mm)
     renderer = BiplaneRenderer(views, body, vessel=phantom, settings=imaging, seed=seed + robot_id)
@@ -156,19 +159,21 @@ def run_robot(robot_id: int, spec: Any, poses: list[RobotPose], seed: int, calib
     scores: dict[str, list[dict[str, Any]]] = {name: [] for name in ESTIMATORS}
     elapsed = 0.0
     for i, pose in enumerate(poses):
-        before = None
+        before = []
         if tracked:
             step = step_rng.normal(size=3)
             step *= TRACK_STEP_MM / np.linalg.norm(step)
-            before = renderer.render(RobotPose(pose.centroid_mm - step, pose.direction))
+            before = [renderer.render(RobotPose(pose.centroid_mm - k * step, pose.direction))
+                      for k in range(history, 0, -1)]
         pair = renderer.render(pose)
         for name, tracker in trackers.items():
             tracker.reset()
-            if before is not None:
-                tracker.process(before.images["p"], before.images["q"], frame=2 * i, t=0.0)
+            for k, earlier in enumerate(before):
+                tracker.process(earlier.images["p"], earlier.images["q"], frame=(history + 1) * i + k,
+                                t=k / TRACK_FPS)
             start = time.perf_counter()
-            posture = tracker.process(pair.images["p"], pair.images["q"], frame=2 * i + 1,
-                                      t=1.0 / TRACK_FPS if tracked else 0.0)
+            posture = tracker.process(pair.images["p"], pair.images["q"], frame=(history + 1) * i + history,
+                                      t=len(before) / TRACK_FPS)
             elapsed += time.perf_counter() - start
             scores[name].append(score(posture.to_record(), pose, pair.head_mm, pair.tail_mm))
             scores[name][-1]["search"] = tracker.last_search
@@ -233,6 +238,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="scenes without the robot (vessels only) that must give no posture (default 20)")
     parser.add_argument("--tracked", action="store_true",
                         help="measure the steady-state (ROI) path: each pose follows a frame one step back")
+    parser.add_argument("--history", type=int, default=1,
+                        help="with --tracked: this many frames, one step apart, precede each pose (default 1)")
     parser.add_argument("--no-body-prior", action="store_true",
                         help="measure the model-free pipeline: the robot's known body does not place the centroid "
                              "and tips (RecognitionSettings.body_prior off)")
@@ -253,7 +260,7 @@ def main(argv: list[str] | None = None) -> int:
         rng = np.random.default_rng([args.seed, robot_id])
         poses = random_poses(rng, args.poses)
         scores, elapsed = run_robot(robot_id, robots[robot_id], poses, args.seed, calibration, views, phantom, imaging,
-                                    tracked=args.tracked, body_prior=not args.no_body_prior)
+                                    tracked=args.tracked, body_prior=not args.no_body_prior, history=args.history)
         total_time += elapsed
         total_frames += len(poses) * len(ESTIMATORS)
         results[robot_id] = {name: summarise(s) for name, s in scores.items()}

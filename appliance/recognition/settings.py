@@ -243,6 +243,10 @@ class RecognitionSettings(StrictModel):
     # -- tracking -----------------------------------------------------------------------------------
     #: Margin (px) of the region of interest around the predicted robot image.
     roi_margin_px: int = Field(14, ge=4, le=256)
+    #: Where the last frame was the steady pair's, each view is first searched in a tighter ROI around the
+    #: same prediction, its margin what the last frame's prediction error allows (steady_kernels'
+    #: TIGHT_MARGIN_PX), and in the ROI above where the body found there is not the robot where predicted.
+    tight_roi: bool = True
     #: The ROI blob must lie within this distance (px) of the predicted image centroid.
     gate_px: float = Field(40.0, gt=0)
     #: After this many consecutive lost frames the history (velocity, direction) is forgotten.

@@ -66,7 +66,10 @@ IN_SOURCES = IN_FINISH + FINISH_SETTINGS
 #: The robot's body for the body prior on a plain frame (see _place_body): 1 if the tracker knows it, then its
 #: numbers in :mod:`.body_kernels`' ``B_*`` layout (:attr:`.BodyModel.packed`).
 IN_BODY = IN_SOURCES + 8
-IN_SIZE = IN_BODY + 1 + body_kernels.B_SIZE
+#: 1 where the previous pair's output (``prev``) is the last frame's and each view may first be searched in
+#: the ROI its prediction error allows (see :data:`TIGHT_MARGIN_PX`), 0: the ROI only (written per frame).
+IN_TIGHT = IN_BODY + 1 + body_kernels.B_SIZE
+IN_SIZE = IN_TIGHT + 1
 
 #: Layout of the output array: per view (``OUT_VIEW + view * OUT_VIEW_SIZE``) search_view's output
 #: (``roi_kernels`` layout, ``SEARCH_SIZE`` numbers), then the view's ROI ``x0, y0, x1, y1`` and its
@@ -75,9 +78,10 @@ OUT_VIEW = 0
 SEARCH_SIZE = roi_kernels.OUT_SIZE + 2 * 5
 R_ROI = SEARCH_SIZE
 R_AXIS_SIGMA = SEARCH_SIZE + 4
-R_LEAN = SEARCH_SIZE + 5  # 1 if the lean pass found this view, 0 if search_view did
+R_LEAN = SEARCH_SIZE + 5  # 1 if the lean pass found this view, 2 if the tight ROI did, 0 if the ROI did
 R_EXTENT = SEARCH_SIZE + 6  # 3: the body's (mask's) s range and largest |t| about the centroid, along the axis
-OUT_VIEW_SIZE = SEARCH_SIZE + 9
+R_RESIDUAL = SEARCH_SIZE + 9  # the prediction's error in this view (px): found centroid - predicted
+OUT_VIEW_SIZE = SEARCH_SIZE + 10
 OUT_FRONT = 2 * OUT_VIEW_SIZE
 OUT_FRONT_STATUS = OUT_FRONT + reconstruction_kernels.OUT_SIZE
 #: The plain frame's posture (see _finish): 1 if plain, then its centroid, direction, tips (head first),
@@ -143,6 +147,33 @@ def _roi(pu, pv, eu0, ev0, eu1, ev1, margin, h, w):  # pragma: no cover - compil
     if x1 - x0 < 4 or y1 - y0 < 4:
         return False, 0, 0, 0, 0
     return True, x0, y0, x1, y1
+
+
+# ------------------------------------------------------------------------------------- the tight ROI
+#: The tight ROI (issue 8): where the last frame was the pair's, a view is first searched in the ROI around
+#: the same predicted body with this margin (px beyond the body's half width) plus its allowance for the
+#: prediction's error, ``2 x`` the last frame's error in that view ``+ 1`` px, where that is narrower than
+#: the ROI's (``roi_margin_px``) and the view's noise sigma is not measured this frame (it is measured on
+#: the ROI). The refinement's own edge test keeps a body whose support and fill come within 3 px of the
+#: tight ROI's edge out; its side baselines (up to ~8 px beside the core) are clamped into the ROI there,
+#: as at the ROI's edge. The ROI's pixels are most of the attenuation's and the candidates' work.
+TIGHT_MARGIN_PX = 7.0
+#: What the tight ROI's body must be, else the view is searched in the ROI as before: its centroid within
+#: the allowance + this many px of the prediction ...
+TIGHT_GATE_PX = 2.0
+#: ... and its pixel count within this fraction of the last frame's (a body cut by the tight ROI, or
+#: another blob, is not the robot where predicted).
+TIGHT_COUNT_CHANGE = 0.25
+
+
+@kernel
+def _is_as_predicted(view_out, prev, o, pu, pv, allowance):  # pragma: no cover - compiled
+    """Whether the tight ROI's body (``view_out``) is the last frame's (``prev[o:]``) where predicted."""
+    c = roi_kernels.CENTROID
+    if not math.hypot(view_out[c] - pu, view_out[c + 1] - pv) <= allowance + TIGHT_GATE_PX:
+        return False
+    count, last = view_out[roi_kernels.REFINED + 12], prev[o + roi_kernels.REFINED + 12]
+    return abs(count - last) <= TIGHT_COUNT_CHANGE * last
 
 
 # ------------------------------------------------------------------------------------- the lean pass
@@ -645,6 +676,7 @@ def search_pair(image_p, image_q, coarse_p, coarse_q, log_table, g, params, ring
         eu0, ev0 = projected[view, 1, 0], projected[view, 1, 1]
         eu1, ev1 = projected[view, 2, 0], projected[view, 2, 1]
         margin = inp[IN_MARGIN]
+        half_width = 0.0
         if inp[v + V_HAS_OUTLINE] != 0.0:
             # As the tracker: the last frame's 2D ends moved with the predicted image centroid, and the
             # margin counted from the body's edge.
@@ -672,7 +704,25 @@ def search_pair(image_p, image_q, coarse_p, coarse_q, log_table, g, params, ring
                 params, near_hw, levels, axis_saturation, head_ramp_ratio, head_min_ramp_px, gate_px, out, o)
             if lean:
                 x0, y0 = lx0, ly0
-        if not lean:
+        found, via = lean, 1.0 if lean else 0.0
+        if not found and inp[IN_TIGHT] != 0.0 and inp[v + V_HAS_OUTLINE] != 0.0 and inp[v + V_KNOWN_SIGMA] > 0.0:
+            # The tight ROI first, where the last frame's prediction error allows one (NaN: it does not) and the
+            # noise sigma is known (it is measured on the ROI: its pixels, not the tight ROI's).
+            allowance = 2.0 * prev[o + R_RESIDUAL] + 1.0
+            tight = TIGHT_MARGIN_PX + allowance + half_width
+            if tight < margin:
+                ok, tx0, ty0, tx1, ty1 = _roi(pu, pv, eu0, ev0, eu1, ev1, tight, int(inp[v + V_HEIGHT]),
+                                              int(inp[v + V_WIDTH]))
+                if ok:
+                    status, weights, mask = roi_kernels.search_view(
+                        image, ty0, ty1, tx0, tx1, coarse, inp[v + V_FY], inp[v + V_FX], log_table, g, detect_sigma,
+                        smooth_gain, floor, inp[v + V_KNOWN_SIGMA], min_pixels, max_tries, max_candidates, params,
+                        ring_outer, ring_inner, near_hw, pu, pv, gate_px, axis_saturation, levels, head_ramp_ratio,
+                        head_min_ramp_px, view_out)
+                    if status == roi_kernels.FOUND and _is_as_predicted(view_out, prev, o, pu, pv, allowance):
+                        found, via = True, 2.0
+                        x0, y0, x1, y1 = tx0, ty0, tx1, ty1
+        if not found:
             status, weights, mask = roi_kernels.search_view(
                 image, y0, y1, x0, x1, coarse, inp[v + V_FY], inp[v + V_FX], log_table, g, detect_sigma, smooth_gain,
                 floor, inp[v + V_KNOWN_SIGMA], min_pixels, max_tries, max_candidates, params, ring_outer, ring_inner,
@@ -680,7 +730,9 @@ def search_pair(image_p, image_q, coarse_p, coarse_q, log_table, g, params, ring
             if status != roi_kernels.FOUND:
                 return PAIR_PER_VIEW, w_p, m_p, w_q, m_q
         out[o + R_ROI], out[o + R_ROI + 1], out[o + R_ROI + 2], out[o + R_ROI + 3] = x0, y0, x1, y1
-        out[o + R_LEAN] = 1.0 if lean else 0.0
+        out[o + R_LEAN] = via
+        c = roi_kernels.CENTROID
+        out[o + R_RESIDUAL] = math.hypot(view_out[c] - pu, view_out[c + 1] - pv)
         _extent(out, o, mask, x0 + int(view_out[roi_kernels.REFINED + 2]), y0 + int(view_out[roi_kernels.REFINED]))
         r = roi_kernels.REFINED
         clutter_sigma = clutter_axis_sigma(view_out[r + 11], int(view_out[r + 12]), view_out[r + 4], view_out[r + 6],

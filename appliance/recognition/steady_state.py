@@ -89,6 +89,7 @@ class SteadyPair:
                        self._near, _LEVELS_ARRAY, self._search_settings, self._G, self._inp)
         self._weighted = s.estimator == "weighted"
         self._lean_allowed = not s.background_along_structure
+        self._tight = s.tight_roi
         #: The checks that stay in Python (plain_posture), as plain floats.
         self._max_axis_sigma_deg = float(s.max_axis_sigma_deg)
         self._epipolar_band_px = float(s.epipolar_band_px)
@@ -123,7 +124,7 @@ class SteadyPair:
                centre: tuple[float, float, float], direction: tuple[float, float, float], half: float,
                outline_p: Outline | None, outline_q: Outline | None, sigma_p: float | None, sigma_q: float | None,
                previous: tuple[float, float, float] | None, lean_from: np.ndarray | None = None,
-               last_centre: tuple[float, float, float] = (0.0, 0.0, 0.0)
+               last_centre: tuple[float, float, float] = (0.0, 0.0, 0.0), last_out: np.ndarray | None = None
                ) -> bool:
         """Both views searched and the front run in one call: True if both views were plainly found (then
         :meth:`plain_posture` and :meth:`objects` give the results), False if not (take the per-view path).
@@ -133,7 +134,9 @@ class SteadyPair:
         direction for the reconstruction (None if none). The images must pass :meth:`usable`.
         ``lean_from``: the previous pair's :attr:`out` (its frame remembered by the tracker, whose 3D
         centroid was ``last_centre``) to try the lean pass from (prototype; a view whose noise sigma is
-        measured this frame takes the full search), or None.
+        measured this frame takes the full search), or None. ``last_out``: the previous pair's :attr:`out` where
+        the last frame was that pair's (the tight ROI starts from its prediction errors, see
+        :data:`.steady_kernels.TIGHT_MARGIN_PX`), or None.
         """
         if not self._lean_allowed:
             lean_from = None  # the lean pass interpolates the background along image columns or rows only
@@ -146,6 +149,9 @@ class SteadyPair:
         m[0], m[1], m[2] = centre
         m[3], m[4], m[5] = direction
         m[sk.IN_HALF] = half
+        if not self._tight:
+            last_out = None
+        m[sk.IN_TIGHT] = 0.0 if last_out is None else 1.0
         m[7], m[8], m[9] = last_centre
         if previous is None:
             m[10] = m[11] = m[12] = m[13] = 0.0
@@ -170,7 +176,8 @@ class SteadyPair:
             self._written = (bg_p, bg_q)
         out, self._centroid_mm, self._direction, self._rest = self._output()
         status, w_p, m_p, w_q, m_q = sk.search_pair(image_p, image_q, bg_p.coarse, bg_q.coarse, *self._fixed,
-                                                    self._no_previous if lean_from is None else lean_from, out)
+                                                    lean_from if lean_from is not None else
+                                                    last_out if last_out is not None else self._no_previous, out)
         if status != sk.PAIR_FOUND:
             return False
         self.out = out

@@ -307,7 +307,7 @@ class PostureTracker:
         lean_from = self._lean_from if self.settings.lean_steady_state else None
         found = pair.search(image_p, image_q, bg_p, bg_q, (x + vx * dt, y + vy * dt, z + vz * dt),
                             previous or _NO_DIRECTION, half, outlines.get("p"), outlines.get("q"), sigma_p, sigma_q,
-                            previous, lean_from, track.centroid)
+                            previous, lean_from, track.centroid, self._lean_from)
         if not found:
             return False
         used_p, used_q = pair.sigmas()

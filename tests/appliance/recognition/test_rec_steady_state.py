@@ -1,6 +1,7 @@
 """The steady state's one compiled call per pair (steady_state / steady_kernels) gives what the per-view path
 (find_in_roi per view, then reconstruct) gives, bit for bit: every posture record, every Blob and Features2D field,
-and the noise-sigma schedule, over short trajectories of several robots (clean and over a contrast-filled vessel)."""
+and the noise-sigma schedule, over short trajectories of several robots (clean and over a contrast-filled vessel)
+(with the tight ROI off: the per-view path has none); and the tight ROI follows such tracks as the ROI does."""
 from __future__ import annotations
 
 import dataclasses
@@ -13,7 +14,7 @@ import pytest
 from appliance.geometry import Calibration
 from appliance.recognition import PostureTracker, RecognitionSettings
 from appliance.recognition import tracker as tracker_module
-from appliance.recognition.steady_kernels import clutter_axis_sigma
+from appliance.recognition.steady_kernels import OUT_VIEW_SIZE, R_LEAN, clutter_axis_sigma
 from appliance.recognition.features import clutter_axis_sigma_rad
 from appliance.recognition.steady_state import SteadyPair
 from appliance.robots import load_robots
@@ -82,7 +83,8 @@ def _track_both_ways(views: dict[str, object], calibration: Calibration, robot: 
     body = RobotBody(spec.length_mm, spec.diameter_mm, spec.tip_angle_deg, spec.attenuation_per_mm)
     vessel = VesselPhantom(smooth_centreline(S_BEND_CENTRELINE_MM), 2.5, 0.06)
     renderer = BiplaneRenderer(views, body, vessel=vessel, settings=ImagingSettings(), seed=robot)
-    settings = RecognitionSettings(dark_level=ImagingSettings().dark_level)
+    # The tight ROI (which the per-view path does not have) off: the pair's ROI is the per-view path's.
+    settings = RecognitionSettings(dark_level=ImagingSettings().dark_level, tight_roi=False)
     known = spec if body else None
     paired, per_view = PostureTracker(calibration, settings, body=known), PostureTracker(calibration, settings, body=known)
     monkeypatch.setattr(per_view._pair, "usable", lambda *args: False)
@@ -192,24 +194,95 @@ def test_compiled_clutter_term_equals_the_python_one() -> None:
         assert a == b or (math.isnan(a) and math.isnan(b)), case
 
 
-def _lean_track(views: dict[str, object], calibration: Calibration, robot: int, centres: list[np.ndarray],
-                direction: tuple[float, ...]) -> list[tuple[object, object, tuple[bool, bool]]]:
-    """Per frame: the posture with the lean pass on, with it off, and which views the lean pass found."""
+def _two_trackers(views: dict[str, object], calibration: Calibration, robot: int, centres: list[np.ndarray],
+                  direction: tuple[float, ...], first: RecognitionSettings, second: RecognitionSettings,
+                  used: object, body: bool = False) -> list[tuple[object, object, tuple[bool, bool]]]:
+    """Per frame of the robot at ``centres``: the posture of a tracker with settings ``first``, of one with
+    ``second`` (both given the robot's body if ``body``), and ``used(first tracker)``."""
     spec = load_robots()[robot]
-    body = RobotBody(spec.length_mm, spec.diameter_mm, spec.tip_angle_deg, spec.attenuation_per_mm)
+    shape = RobotBody(spec.length_mm, spec.diameter_mm, spec.tip_angle_deg, spec.attenuation_per_mm)
     vessel = VesselPhantom(smooth_centreline(S_BEND_CENTRELINE_MM), 2.5, 0.06)
-    renderer = BiplaneRenderer(views, body, vessel=vessel, settings=ImagingSettings(), seed=robot)
-    dark = ImagingSettings().dark_level
-    lean = PostureTracker(calibration, RecognitionSettings(dark_level=dark, lean_steady_state=True))
-    full = PostureTracker(calibration, RecognitionSettings(dark_level=dark))
+    renderer = BiplaneRenderer(views, shape, vessel=vessel, settings=ImagingSettings(), seed=robot)
+    known = spec if body else None
+    a_tracker = PostureTracker(calibration, first, body=known)
+    b_tracker = PostureTracker(calibration, second, body=known)
     frames = []
     for n, centre in enumerate(centres):
         pair = renderer.render(RobotPose(centre, np.array(direction)))
-        a = lean.process(pair.images["p"], pair.images["q"], frame=n, t=n / 30.0)
-        b = full.process(pair.images["p"], pair.images["q"], frame=n, t=n / 30.0)
-        used = lean._pair.lean_views() if lean.last_search == "roi" and lean._lean_from is not None else (False, False)
-        frames.append((a, b, used))
+        a = a_tracker.process(pair.images["p"], pair.images["q"], frame=n, t=n / 30.0)
+        b = b_tracker.process(pair.images["p"], pair.images["q"], frame=n, t=n / 30.0)
+        frames.append((a, b, used(a_tracker)))  # type: ignore[operator]
     return frames
+
+
+def _tight_views(tracker: PostureTracker) -> tuple[bool, bool]:
+    """Which views the tracker's last steady pair found in the tight ROI."""
+    out = tracker._pair.out
+    if tracker.last_search != "roi" or not out.size:
+        return False, False
+    return bool(out[R_LEAN] == 2.0), bool(out[OUT_VIEW_SIZE + R_LEAN] == 2.0)
+
+
+def _tight_track(views: dict[str, object], calibration: Calibration, robot: int, centres: list[np.ndarray],
+                 direction: tuple[float, ...]) -> list[tuple[object, object, tuple[bool, bool]]]:
+    """Per frame: the posture with the tight ROI on, with it off, and which views the tight ROI found."""
+    dark = ImagingSettings().dark_level
+    return _two_trackers(views, calibration, robot, centres, direction, RecognitionSettings(dark_level=dark),
+                         RecognitionSettings(dark_level=dark, tight_roi=False), _tight_views, body=True)
+
+
+@pytest.mark.parametrize("robot,start,velocity,direction", [
+    (1, (3.0, -4.0, 5.0), (20.0, 10.0, -5.0), (0.3, 0.5, 0.81)),
+    (3, (-4.0, 0.5, 6.0), (30.0, 0.0, 0.0), (0.9, 0.4, 0.2)),       # along the vessel
+    (6, (1.0, 0.0, 6.0), (10.0, -10.0, 0.0), (0.6, -0.3, 0.74)),    # over the vessel
+])
+def test_tight_roi_follows_a_steady_track_as_the_roi_does(views: dict[str, object], calibration: Calibration,
+                                                          robot: int, start: tuple[float, ...],
+                                                          velocity: tuple[float, ...],
+                                                          direction: tuple[float, ...]) -> None:
+    centres = [np.array(start) + n / 30.0 * np.array(velocity) for n in range(7)]
+    frames = _tight_track(views, calibration, robot, centres, direction)
+    # Frame 0 is detected, frame 1 searched in the ROI (no previous pair); then the tight ROI, both views.
+    assert [used for _, _, used in frames[:2]] == [(False, False), (False, False)]
+    assert sum(used == (True, True) for _, _, used in frames[2:]) >= 4
+    for tight, wide, _ in frames:
+        assert tight.ok == wide.ok and tight.ambiguous == wide.ambiguous
+        assert tight.head_identified == wide.head_identified
+        if tight.ok:
+            assert np.linalg.norm(tight.centroid_mm - wide.centroid_mm) < 0.01
+            if tight.tips_mm is not None:
+                assert np.abs(tight.tips_mm - wide.tips_mm).max() < 0.05
+
+
+def test_tight_roi_widens_where_the_body_moved_unexpectedly(views: dict[str, object],
+                                                             calibration: Calibration) -> None:
+    # Frames 0-4 at constant velocity, then a 1.5 mm jump across the axis (~10 px, beyond the tight ROI's
+    # allowance): that view is searched in the ROI, which finds the body as without the tight ROI.
+    direction = np.array([-0.7, 0.2, 0.68]) / np.linalg.norm([-0.7, 0.2, 0.68])
+    across = np.cross(direction, [0.0, 0.0, 1.0])
+    centres = [np.array([-8.0, 6.0, -3.0]) + n / 30.0 * np.array([9.0, 3.0, -2.0]) for n in range(5)]
+    centres.append(centres[-1] + 1.5 * across / np.linalg.norm(across))
+    frames = _tight_track(views, calibration, 1, centres, tuple(direction))
+    assert frames[4][2] == (True, True)
+    tight, wide, used = frames[5]
+    assert used != (True, True)
+    assert tight.ok and wide.ok
+    assert np.array_equal(tight.centroid_mm, wide.centroid_mm) or np.linalg.norm(
+        tight.centroid_mm - wide.centroid_mm) < 0.01
+
+
+def _lean_track(views: dict[str, object], calibration: Calibration, robot: int, centres: list[np.ndarray],
+                direction: tuple[float, ...]) -> list[tuple[object, object, tuple[bool, bool]]]:
+    """Per frame: the posture with the lean pass on, with it off, and which views the lean pass found."""
+    dark = ImagingSettings().dark_level
+
+    def used(tracker: PostureTracker) -> tuple[bool, bool]:
+        return (tracker._pair.lean_views() if tracker.last_search == "roi" and tracker._lean_from is not None
+                else (False, False))
+
+    return _two_trackers(views, calibration, robot, centres, direction,
+                         RecognitionSettings(dark_level=dark, lean_steady_state=True),
+                         RecognitionSettings(dark_level=dark), used)
 
 
 def test_lean_pass_follows_a_clean_track_as_the_roi_search_does(views: dict[str, object],
