@@ -152,7 +152,12 @@ def log_background(image: np.ndarray, scale_px: int = 48, dark_level: float = 0.
     hb, wb = max(1, hs // 2), max(1, ws // 2)
     field = cv2.resize(logs, (wb, hb), interpolation=cv2.INTER_AREA)
     k = max(3, (scale_px // (2 * f)) | 1)
-    closed = cv2.morphologyEx(field, cv2.MORPH_CLOSE, _ellipse(k), borderType=cv2.BORDER_REPLICATE)
+    if k == background_kernels.CLOSING_SIZE and field.dtype == np.float32:
+        # (The scale every setting gives: the same values as OpenCV's, in half its time.)
+        closed = np.empty_like(field)
+        background_kernels.closing_7(np.ascontiguousarray(field), _row_half_widths(k), closed)
+    else:
+        closed = cv2.morphologyEx(field, cv2.MORPH_CLOSE, _ellipse(k), borderType=cv2.BORDER_REPLICATE)
     closed = cv2.GaussianBlur(closed, (0, 0), k / 3.0, borderType=cv2.BORDER_REPLICATE)
     if (hs, ws) == (2 * hb, 2 * wb):
         # Back onto the detection grid and the coarse attenuation in one compiled pass (a resize, a
@@ -169,3 +174,11 @@ def log_background(image: np.ndarray, scale_px: int = 48, dark_level: float = 0.
 @functools.lru_cache(maxsize=8)
 def _ellipse(k: int) -> np.ndarray:
     return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+
+
+@functools.lru_cache(maxsize=8)
+def _row_half_widths(k: int) -> np.ndarray:
+    """Half width of each row of :func:`_ellipse` (its rows are centred runs): the compiled closing's input."""
+    counts = _ellipse(k).sum(axis=1).astype(np.int64)
+    assert np.all(counts % 2 == 1), "the ellipse's rows are centred runs"
+    return (counts - 1) // 2

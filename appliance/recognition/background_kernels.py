@@ -10,6 +10,9 @@ cheap and the per-pixel work that numpy would spread over dozens of calls is one
   level exactly as OpenCV's ``INTER_AREA`` downsampling of a 16-bit frame rounds it, then
   ``log(max(mean - dark, 1))`` read from a table of the 65536 gray levels (a table read is several
   times cheaper than a logarithm); the ``f = 4`` variant (the default scale) adds whole 64-bit words;
+* :func:`closing_7` - the grey closing of the coarse field by a 7 x 7 structuring element (the
+  ellipse every background scale uses), exact min/max as OpenCV's ``MORPH_CLOSE`` with replicated
+  borders, in a few vectorised passes instead of one pass per element pixel;
 * :func:`upsample_attenuation` - the closed field brought back onto the detection grid (OpenCV's
   bilinear ``2x`` mapping) and the coarse attenuation taken in the same pass, two rows at a time;
 * :func:`median_abs_step` - the median absolute difference of horizontal neighbours on a row
@@ -98,6 +101,90 @@ def block_mean_log_4(words: np.ndarray, table: np.ndarray, out: np.ndarray) -> N
         o = out[i]
         for j in range(ws):
             o[j] = table[level[j]]
+
+
+#: Rows (and the largest half width) of the structuring element :func:`closing_7` takes.
+CLOSING_SIZE = 7
+
+
+@kernel
+def _spread_7(image: np.ndarray, half_widths: np.ndarray, sign: float, out: np.ndarray) -> None:  # pragma: no cover
+    """``out = sign * max`` of ``sign * image`` over the 7 x 7 structuring element whose row ``r`` is the
+    run of half width ``half_widths[r]`` (0..3) centred on the pixel's column, borders replicated: a
+    dilation (``sign = 1``) or an erosion (``sign = -1``, as ``-max(-x)`` is ``min(x)`` exactly).
+
+    Each row's running maxima over half widths 0..3 are taken once (a padded copy read at fixed
+    offsets), stacked in one array, and every output pixel is the maximum of seven stacked rows: all
+    reads of one array at fixed offsets, so both passes vectorise."""
+    h, w = image.shape
+    s = np.float32(sign)
+    hp = h + 6
+    padded = np.empty((hp, w + 6), dtype=np.float32)
+    for yy in range(hp):
+        y = min(max(yy - 3, 0), h - 1)
+        left = image[y, 0] * s
+        right = image[y, w - 1] * s
+        for x in range(3):
+            padded[yy, x] = left
+            padded[yy, w + 3 + x] = right
+        for x in range(w):
+            padded[yy, x + 3] = image[y, x] * s
+    # spans[k * hp + yy, x]: the maximum of padded row yy over columns x + 3 - k .. x + 3 + k.
+    spans = np.empty((4 * hp, w), dtype=np.float32)
+    for yy in range(hp):
+        for x in range(w):
+            m = padded[yy, x + 3]
+            spans[yy, x] = m
+            v = padded[yy, x + 2]
+            m = m if m > v else v
+            v = padded[yy, x + 4]
+            m = m if m > v else v
+            spans[hp + yy, x] = m
+            v = padded[yy, x + 1]
+            m = m if m > v else v
+            v = padded[yy, x + 5]
+            m = m if m > v else v
+            spans[2 * hp + yy, x] = m
+            v = padded[yy, x]
+            m = m if m > v else v
+            v = padded[yy, x + 6]
+            m = m if m > v else v
+            spans[3 * hp + yy, x] = m
+    r0 = half_widths[0] * hp
+    r1 = half_widths[1] * hp + 1
+    r2 = half_widths[2] * hp + 2
+    r3 = half_widths[3] * hp + 3
+    r4 = half_widths[4] * hp + 4
+    r5 = half_widths[5] * hp + 5
+    r6 = half_widths[6] * hp + 6
+    for y in range(h):
+        for x in range(w):
+            m = spans[r0 + y, x]
+            v = spans[r1 + y, x]
+            m = m if m > v else v
+            v = spans[r2 + y, x]
+            m = m if m > v else v
+            v = spans[r3 + y, x]
+            m = m if m > v else v
+            v = spans[r4 + y, x]
+            m = m if m > v else v
+            v = spans[r5 + y, x]
+            m = m if m > v else v
+            v = spans[r6 + y, x]
+            m = m if m > v else v
+            out[y, x] = m * s
+
+
+@kernel
+def closing_7(image: np.ndarray, half_widths: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover
+    """``out`` = the grey closing (a dilation, then an erosion) of ``image`` (float32, finite) by the 7 x 7
+    structuring element whose row ``r`` is the centred run of half width ``half_widths[r]`` (0..3), borders
+    replicated: the values of ``cv2.morphologyEx(image, MORPH_CLOSE, element, borderType=BORDER_REPLICATE)``
+    to the last bit (both are maxima and minima of the same pixels), about twice as fast on the coarse
+    field."""
+    dilated = np.empty_like(out)
+    _spread_7(image, half_widths, 1.0, dilated)
+    _spread_7(dilated, half_widths, -1.0, out)
 
 
 @kernel
@@ -541,6 +628,7 @@ def warm_up() -> None:
     for frame in (image, frozen):
         window_attenuation(frame, 0, 4, 0, 4, small, 4.0, 4.0, table)
     upsample_attenuation(np.zeros((1, 1), dtype=np.float32), small, np.empty_like(small), np.empty_like(small))
+    closing_7(small, np.array([0, 2, 3, 3, 3, 2, 0], dtype=np.int64), np.empty_like(small))
     coarse_components(small, 0.5, 0.5, np.zeros((2, 2), dtype=np.int32))
     coarse_components(small, 0.5, 0.5, np.zeros((0, 0), dtype=np.int32))
     coarse_candidates(small, 4, 0.01, 6.0, 0.1, 0.2, 0.5, 24, 4.0, 4.0, 420.0, 14.0, 0.7, 8, 8)

@@ -58,6 +58,38 @@ def test_downsampling_of_sizes_that_are_not_multiples_goes_through_opencv() -> N
     np.testing.assert_allclose(_downsample_log(image, 4, 1000.0), _reference_log(image, 4, 1000.0), atol=1e-6)
 
 
+@pytest.mark.parametrize("shape", [(128, 128), (45, 35), (7, 9), (1, 5), (3, 1), (1, 1)])
+@pytest.mark.parametrize("element", [cv2.MORPH_ELLIPSE, cv2.MORPH_RECT, cv2.MORPH_CROSS])
+def test_closing_7_is_opencvs_closing_to_the_last_bit(shape: tuple[int, int], element: int) -> None:
+    rng = np.random.default_rng(shape[0] * 7 + shape[1] + element)
+    kernel = cv2.getStructuringElement(element, (kernels.CLOSING_SIZE, kernels.CLOSING_SIZE))
+    half_widths = (kernel.sum(axis=1).astype(np.int64) - 1) // 2
+    # Noise, plateaus with ties (a closing's output is made of them) and negative values.
+    for field in (rng.random(shape, dtype=np.float32), (3 * rng.random(shape)).round().astype(np.float32),
+                  -1e3 * rng.random(shape, dtype=np.float32)):
+        closed = np.empty_like(field)
+        kernels.closing_7(field, half_widths, closed)
+        expected = cv2.morphologyEx(field, cv2.MORPH_CLOSE, kernel, borderType=cv2.BORDER_REPLICATE)
+        np.testing.assert_array_equal(closed, expected)
+
+
+def test_log_background_closes_the_field_as_opencv_does() -> None:
+    """The background of a frame is what OpenCV's closing of its field would give, to the last bit."""
+    rng = np.random.default_rng(11)
+    y, x = np.mgrid[0:512, 0:512]
+    image = (30000 - 8 * np.hypot(y - 200, x - 300) + rng.normal(0, 300, (512, 512))).astype(np.uint16)
+    image[250:262, 100:180] = 9000   # a dark bar the closing removes
+    background = log_background(image, 48, 1000.0)
+    logs = _downsample_log(image, 4, 1000.0)
+    field = cv2.resize(logs, (64, 64), interpolation=cv2.INTER_AREA)
+    closed = cv2.morphologyEx(field, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (7, 7)),
+                              borderType=cv2.BORDER_REPLICATE)
+    closed = cv2.GaussianBlur(closed, (0, 0), 7 / 3.0, borderType=cv2.BORDER_REPLICATE)
+    coarse = np.empty_like(logs)
+    kernels.upsample_attenuation(closed, logs, coarse, np.empty_like(logs))
+    np.testing.assert_array_equal(background.coarse, coarse)
+
+
 @pytest.mark.parametrize("shape", [(64, 64), (25, 19), (1, 7), (6, 1), (1, 1)])
 def test_upsample_attenuation_is_opencvs_bilinear_doubling_less_the_logs(shape: tuple[int, int]) -> None:
     rng = np.random.default_rng(shape[0] * 10 + shape[1])
