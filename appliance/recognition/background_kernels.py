@@ -116,6 +116,12 @@ CLOSING_SIZE = 7
 
 
 @kernel
+def _larger(a: float, b: float) -> float:  # pragma: no cover
+    """The larger of two finite values, as a comparison the compiler turns into a vector maximum."""
+    return a if a > b else b
+
+
+@kernel
 def _spread_7(image: np.ndarray, half_widths: np.ndarray, sign: float, out: np.ndarray) -> None:  # pragma: no cover
     """``out = sign * max`` of ``sign * image`` over the 7 x 7 structuring element whose row ``r`` is the
     run of half width ``half_widths[r]`` (0..3) centred on the pixel's column, borders replicated: a
@@ -143,21 +149,11 @@ def _spread_7(image: np.ndarray, half_widths: np.ndarray, sign: float, out: np.n
         for x in range(w):
             m = padded[yy, x + 3]
             spans[yy, x] = m
-            v = padded[yy, x + 2]
-            m = m if m > v else v
-            v = padded[yy, x + 4]
-            m = m if m > v else v
+            m = _larger(m, _larger(padded[yy, x + 2], padded[yy, x + 4]))
             spans[hp + yy, x] = m
-            v = padded[yy, x + 1]
-            m = m if m > v else v
-            v = padded[yy, x + 5]
-            m = m if m > v else v
+            m = _larger(m, _larger(padded[yy, x + 1], padded[yy, x + 5]))
             spans[2 * hp + yy, x] = m
-            v = padded[yy, x]
-            m = m if m > v else v
-            v = padded[yy, x + 6]
-            m = m if m > v else v
-            spans[3 * hp + yy, x] = m
+            spans[3 * hp + yy, x] = _larger(m, _larger(padded[yy, x], padded[yy, x + 6]))
     r0 = half_widths[0] * hp
     r1 = half_widths[1] * hp + 1
     r2 = half_widths[2] * hp + 2
@@ -167,19 +163,8 @@ def _spread_7(image: np.ndarray, half_widths: np.ndarray, sign: float, out: np.n
     r6 = half_widths[6] * hp + 6
     for y in range(h):
         for x in range(w):
-            m = spans[r0 + y, x]
-            v = spans[r1 + y, x]
-            m = m if m > v else v
-            v = spans[r2 + y, x]
-            m = m if m > v else v
-            v = spans[r3 + y, x]
-            m = m if m > v else v
-            v = spans[r4 + y, x]
-            m = m if m > v else v
-            v = spans[r5 + y, x]
-            m = m if m > v else v
-            v = spans[r6 + y, x]
-            m = m if m > v else v
+            m = _larger(_larger(spans[r0 + y, x], spans[r1 + y, x]), _larger(spans[r2 + y, x], spans[r3 + y, x]))
+            m = _larger(m, _larger(_larger(spans[r4 + y, x], spans[r5 + y, x]), spans[r6 + y, x]))
             out[y, x] = m * s
 
 
