@@ -58,6 +58,54 @@ def test_downsampling_of_sizes_that_are_not_multiples_goes_through_opencv() -> N
     np.testing.assert_allclose(_downsample_log(image, 4, 1000.0), _reference_log(image, 4, 1000.0), atol=1e-6)
 
 
+@pytest.mark.parametrize("shape", [(128, 128), (45, 35), (7, 9), (1, 5), (3, 1), (1, 1)])
+@pytest.mark.parametrize("element", [cv2.MORPH_ELLIPSE, cv2.MORPH_RECT, cv2.MORPH_CROSS])
+def test_closing_7_is_opencvs_closing_to_the_last_bit(shape: tuple[int, int], element: int) -> None:
+    rng = np.random.default_rng(shape[0] * 7 + shape[1] + element)
+    kernel = cv2.getStructuringElement(element, (kernels.CLOSING_SIZE, kernels.CLOSING_SIZE))
+    half_widths = (kernel.sum(axis=1).astype(np.int64) - 1) // 2
+    # Noise, plateaus with ties (a closing's output is made of them) and negative values.
+    for field in (rng.random(shape, dtype=np.float32), (3 * rng.random(shape)).round().astype(np.float32),
+                  -1e3 * rng.random(shape, dtype=np.float32)):
+        closed = np.empty_like(field)
+        kernels.closing_7(field, half_widths, closed)
+        expected = cv2.morphologyEx(field, cv2.MORPH_CLOSE, kernel, borderType=cv2.BORDER_REPLICATE)
+        np.testing.assert_array_equal(closed, expected)
+
+
+@pytest.mark.parametrize("shape", [(128, 128), (64, 64), (33, 24), (8, 256)])
+def test_gaussian_blur_21_is_opencvs_blur_to_the_last_bit(shape: tuple[int, int]) -> None:
+    """On widths that are multiples of 8 (where OpenCV's vector path, which fuses its multiply-adds on a CPU
+    with FMA, computes every pixel), the compiled blur is OpenCV's."""
+    from appliance.recognition.background import _gaussian_taps
+
+    rng = np.random.default_rng(shape[0] + 3 * shape[1])
+    taps = _gaussian_taps(7 / 3.0)
+    assert taps.size == kernels.BLUR_TAPS
+    for field in (rng.random(shape, dtype=np.float32), (5 + 3 * rng.random(shape)).astype(np.float32)):
+        blurred = np.empty_like(field)
+        kernels.gaussian_blur_21(field, taps, blurred)
+        expected = cv2.GaussianBlur(field, (0, 0), 7 / 3.0, borderType=cv2.BORDER_REPLICATE)
+        np.testing.assert_array_equal(blurred, expected)
+
+
+def test_log_background_closes_and_blurs_the_field_as_opencv_does() -> None:
+    """The background of a frame is what OpenCV's closing and blur of its field would give, to the last bit."""
+    rng = np.random.default_rng(11)
+    y, x = np.mgrid[0:512, 0:512]
+    image = (30000 - 8 * np.hypot(y - 200, x - 300) + rng.normal(0, 300, (512, 512))).astype(np.uint16)
+    image[250:262, 100:180] = 9000   # a dark bar the closing removes
+    background = log_background(image, 48, 1000.0)
+    logs = _downsample_log(image, 4, 1000.0)
+    field = cv2.resize(logs, (64, 64), interpolation=cv2.INTER_AREA)
+    closed = cv2.morphologyEx(field, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (7, 7)),
+                              borderType=cv2.BORDER_REPLICATE)
+    closed = cv2.GaussianBlur(closed, (0, 0), 7 / 3.0, borderType=cv2.BORDER_REPLICATE)
+    coarse = np.empty_like(logs)
+    kernels.upsample_attenuation(closed, logs, coarse, np.empty_like(logs))
+    np.testing.assert_array_equal(background.coarse, coarse)
+
+
 @pytest.mark.parametrize("shape", [(64, 64), (25, 19), (1, 7), (6, 1), (1, 1)])
 def test_upsample_attenuation_is_opencvs_bilinear_doubling_less_the_logs(shape: tuple[int, int]) -> None:
     rng = np.random.default_rng(shape[0] * 10 + shape[1])
@@ -206,9 +254,9 @@ def test_window_attenuation_leaves_the_noise_to_segment_where_it_is_not_a_plain_
     assert kernels.window_attenuation(frame, 0, 16, 0, 16, coarse, 4.0, 4.0, table)[1] == -1.0
 
 
-def test_median_pair_when_the_sample_misses_the_median() -> None:
-    # The strided sample sees only the large values: its bracket misses the median, the whole array is
-    # taken instead; and a sample that does bracket it. Both give numpy's order statistics.
+def test_median_pair_gives_numpys_order_statistics() -> None:
+    # Uniform values, and values with every 16th far above the rest (a strided sample of them would
+    # see only those): both give numpy's order statistics, ties at the end included.
     rng = np.random.default_rng(23)
     for misleading in (True, False):
         values = rng.random(4096).astype(np.float32)
