@@ -413,28 +413,37 @@ class PostureTracker:
                 break
             rms = pairing_rms(self.F, self.calibration.p.undistort_points(feats["p"].tips),
                               self.calibration.q.undistort_points(feats["q"].tips))
-            cost = min(rms) + distance + self.settings.width_mismatch_px * self._width_mismatch(blobs)
+            width, strength = self._size_mismatch(blobs)
+            cost = (min(rms) + distance + self.settings.width_mismatch_px * width
+                    + self.settings.strength_mismatch_px * strength)
             if best is None or cost < best[0]:
                 best = (cost, blobs, feats)
         timings["features"] += (time.perf_counter_ns() - start) / 1e3
         assert best is not None
         return (best[1], best[2]), ""
 
-    def _width_mismatch(self, blobs: dict[str, Blob]) -> float:
-        """``|log|`` of the ratio of the two blobs' widths in mm at the pair's triangulated position.
+    def _size_mismatch(self, blobs: dict[str, Blob]) -> tuple[float, float]:
+        """``|log|`` of the ratio of the two blobs' widths in mm, and of their integrated attenuations in
+        mm^2, at the pair's triangulated position (0, 0 where it has none).
 
         A rod's projected width is its diameter from any direction (end-on it is a disc of that
         diameter), so the robot's two images agree; a vessel seen end-on in one view (as wide as its
         lumen) paired with the robot in the other does not, even when its centroid and ends happen to
-        lie on the robot's epipolar lines.
+        lie on the robot's epipolar lines. The sum of an object's line integrals over its image, times
+        the pixel's area at the object, is its attenuation integrated over its volume, the same in both
+        views; a piece of vessel split off beside the robot in one view (robot 3 over the vessel: 0.25
+        of the robot's strength in the other view, the robot's own blob 1.2) does not match it either.
         """
         X = triangulate(self.calibration.p, self.calibration.q, blobs["p"].centroid_px, blobs["q"].centroid_px,
                         optimal=False)[0]
         if not np.all(np.isfinite(X)):
-            return 0.0
-        widths = [blob.width_px * float(np.linalg.norm(X - self.calibration.views[name].source_mm))
-                  / float(self.calibration.views[name].K[0, 0]) for name, blob in blobs.items()]
-        return abs(math.log(max(widths[0], 1e-6) / max(widths[1], 1e-6)))
+            return 0.0, 0.0
+        scales = {name: float(np.linalg.norm(X - self.calibration.views[name].source_mm))
+                  / float(self.calibration.views[name].K[0, 0]) for name in blobs}
+        widths = [blob.width_px * scales[name] for name, blob in blobs.items()]
+        strengths = [blob.strength * scales[name] ** 2 for name, blob in blobs.items()]
+        return (abs(math.log(max(widths[0], 1e-6) / max(widths[1], 1e-6))),
+                abs(math.log(max(strengths[0], 1e-12) / max(strengths[1], 1e-12))))
 
     def _bodies_only(self, pairs: list[tuple[int, int, float]], candidates: dict[str, list[Blob]]
                      ) -> list[tuple[int, int, float]]:
