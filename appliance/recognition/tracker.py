@@ -665,7 +665,7 @@ class PostureTracker:
         runner_up = fits[order[1]][0]
         if not (runner_up.chi2 - best.chi2 >= s.head_body_chi2
                 and best.chi2 <= s.head_body_fit * (2 * best.measurements - 6)):
-            return rec
+            return self._centroid_by_body(rec, [fit for fit, _ in fits])
         claimed = {name: feat.with_head(head_index[name]) for name, feat in feats.items()}
         try:
             redone = reconstruct(self.calibration, self.F, claimed["p"], claimed["q"], s, previous)
@@ -680,6 +680,26 @@ class PostureTracker:
                               f"end, fits the body best (chi-square {best.chi2:.1f} against {runner_up.chi2:.1f} "
                               f"for the next)")
         return redone
+
+    def _centroid_by_body(self, rec: Reconstruction, fits: list) -> Reconstruction:
+        """An unresolved mirror ambiguity's centroid where the body's fits under every hypothesis agree on it.
+
+        The images' centroids triangulate to the centroid of the attenuation, not the body's: a cone head
+        moves it along the axis (standing seed 1234567, robot 6, pose 6: 1.6 mm). The body fitted under
+        each mirror hypothesis (:meth:`_mirror_by_body`) places the centroid; where the fits' centroids lie
+        within the body's diameter of each other, their mean is taken (the axis stays unknown, the frame
+        ambiguous), and the reason says how far apart they lie; otherwise the measured centroid stands.
+        """
+        centroids = np.array([fit.centroid for fit in fits])
+        mean = centroids.mean(axis=0)
+        spread = float(max(np.linalg.norm(a - b) for a in centroids for b in centroids))
+        assert self.body is not None
+        if not np.all(np.isfinite(mean)) or spread > self.body.diameter_mm:
+            return rec
+        reasons = rec.reasons + [f"the centroid is the body's, fitted under each mirror hypothesis (they lie within "
+                                 f"{spread:.2f} mm of each other; {float(np.linalg.norm(mean - rec.centroid)):.2f} mm "
+                                 f"from the images' centroid)"]
+        return replace(rec, centroid=mean, reasons=reasons)
 
     def _axis_by_length(self, rec: Reconstruction, blobs: dict[str, Blob]) -> Reconstruction:
         """The axis within an epipolar plane refitted by the known body (:mod:`.axis_by_length`) where the
