@@ -152,3 +152,26 @@ def test_mirror_resolved_by_the_body(calibration: Calibration, robot6: BodyModel
     assert resolved.direction is not None and resolved.head_identified
     assert _angle_deg(resolved.direction, truth) < 1.0
     assert "mirror ambiguity is resolved" in resolved.reasons[-1]
+
+
+def test_an_unresolved_mirror_takes_the_centroid_the_body_fits_agree_on(calibration: Calibration,
+                                                                       robot6: BodyModel) -> None:
+    from appliance.recognition.reconstruction import reconstruct
+
+    tracker = PostureTracker(calibration, RecognitionSettings(), body=load_robots()[6])
+    c = np.array([2.0, 3.0, -1.0])
+    truth, _ = _in_epipolar_plane(calibration, c, 25.0)
+    feats = _features(calibration, robot6, c, truth, {})
+    feats = {name: _profiled(f, robot6.cone_length_mm / robot6.length_mm * float(np.linalg.norm(f.tips[0] - f.tips[1])))
+             for name, f in feats.items()}
+    rec = reconstruct(calibration, tracker.F, feats["p"], feats["q"], tracker.settings, None)
+    assert rec.direction is None
+    body_centre = rec.centroid + 1.5 * truth   # the images' centroid 1.5 mm along the axis from the body's
+    close = [SimpleNamespace(centroid=body_centre + offset) for offset in
+             (np.array([0.3, 0, 0]), np.array([-0.3, 0, 0]), np.array([0, 0.2, 0]), np.array([0, -0.2, 0]))]
+    placed = tracker._centroid_by_body(rec, close)  # type: ignore[arg-type]
+    np.testing.assert_allclose(placed.centroid, body_centre, atol=1e-9)
+    assert placed.direction is None and "the centroid is the body's" in placed.reasons[-1]
+    # Fits farther apart than a quarter of the diameter (5 mm): the measured centroid stands.
+    apart = close[:3] + [SimpleNamespace(centroid=body_centre + np.array([0, 0, 1.5]))]
+    assert tracker._centroid_by_body(rec, apart) is rec  # type: ignore[arg-type]
