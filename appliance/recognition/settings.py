@@ -143,6 +143,10 @@ class RecognitionSettings(StrictModel):
     #: Several candidate pairs on each other's epipolar lines: cost (px) added per unit of ``|log|`` of the
     #: ratio of their widths in mm (a rod is as wide as its diameter from every direction).
     width_mismatch_px: float = Field(8.0, ge=0)
+    #: ... and per unit of ``|log|`` of the ratio of their integrated attenuations in mm^2 (the sum of an
+    #: object's line integrals over its image is its attenuation volume, the same from every direction;
+    #: a piece of vessel beside the robot in one view is far weaker than the robot in the other).
+    strength_mismatch_px: float = Field(4.0, ge=0)
     #: Pairings A/B are "clearly separated" when the worse RMS epipolar distance exceeds the better by
     #: this many pixels; otherwise the frame is ambiguous.
     ambiguity_px: float = Field(3.0, gt=0)

@@ -19,7 +19,7 @@ from appliance.recognition.axis_by_length import PlaneScan
 from appliance.recognition.body_prior import BodyModel
 from appliance.recognition.correspondence import CASE_A, Pairing
 from appliance.recognition.features import Features2D
-from appliance.recognition.reconstruction import Reconstruction
+from appliance.recognition.reconstruction import Reconstruction, reconstruct
 from appliance.robots import load_robots
 
 CAP = RecognitionSettings().head_body_cap
@@ -134,21 +134,41 @@ def _profiled(feat: Features2D, cone_px: float) -> Features2D:
                       feat.centroid - tail * feat.axis]), 100, None, (1.0, 1.0), (cone, step))
 
 
-def test_mirror_resolved_by_the_body(calibration: Calibration, robot6: BodyModel,
-                                     monkeypatch: pytest.MonkeyPatch) -> None:
-    from appliance.recognition.reconstruction import reconstruct
-
-    tracker = PostureTracker(calibration, RecognitionSettings(), body=load_robots()[6])
-    monkeypatch.setattr(tracker, "_rejection", lambda *args: None)   # (no blobs: the checks have nothing to test)
+def _unresolved_mirror(calibration: Calibration, robot6: BodyModel, tracker: PostureTracker
+                       ) -> tuple[np.ndarray, dict[str, Features2D], Reconstruction]:
+    """The true axis in an epipolar plane, profiled features that claim no head, and their reconstruction."""
     c = np.array([2.0, 3.0, -1.0])
     truth, _ = _in_epipolar_plane(calibration, c, 25.0)
     feats = _features(calibration, robot6, c, truth, {})
     feats = {name: _profiled(f, robot6.cone_length_mm / robot6.length_mm * float(np.linalg.norm(f.tips[0] - f.tips[1])))
              for name, f in feats.items()}
-    rec = reconstruct(calibration, tracker.F, feats["p"], feats["q"], tracker.settings, None)
+    return truth, feats, reconstruct(calibration, tracker.F, feats["p"], feats["q"], tracker.settings, None)
+
+
+def test_mirror_resolved_by_the_body(calibration: Calibration, robot6: BodyModel,
+                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    tracker = PostureTracker(calibration, RecognitionSettings(), body=load_robots()[6])
+    monkeypatch.setattr(tracker, "_rejection", lambda *args: None)   # (no blobs: the checks have nothing to test)
+    truth, feats, rec = _unresolved_mirror(calibration, robot6, tracker)
     assert rec.direction is None and rec.candidates is not None   # the mirror ambiguity, unresolved
     blobs = {"p": SimpleNamespace(clutter=0.0), "q": SimpleNamespace(clutter=0.0)}
     resolved = tracker._mirror_by_body(rec, blobs, feats, None)  # type: ignore[arg-type]
     assert resolved.direction is not None and resolved.head_identified
     assert _angle_deg(resolved.direction, truth) < 1.0
     assert "mirror ambiguity is resolved" in resolved.reasons[-1]
+
+
+def test_an_unresolved_mirror_takes_the_centroid_the_body_fits_agree_on(calibration: Calibration,
+                                                                       robot6: BodyModel) -> None:
+    tracker = PostureTracker(calibration, RecognitionSettings(), body=load_robots()[6])
+    truth, feats, rec = _unresolved_mirror(calibration, robot6, tracker)
+    assert rec.direction is None
+    body_centre = rec.centroid + 1.5 * truth   # the images' centroid 1.5 mm along the axis from the body's
+    close = [SimpleNamespace(centroid=body_centre + offset) for offset in
+             (np.array([0.3, 0, 0]), np.array([-0.3, 0, 0]), np.array([0, 0.2, 0]), np.array([0, -0.2, 0]))]
+    placed = tracker._centroid_by_body(rec, close)  # type: ignore[arg-type]
+    np.testing.assert_allclose(placed.centroid, body_centre, atol=1e-9)
+    assert placed.direction is None and "the centroid is the body's" in placed.reasons[-1]
+    # Fits farther apart than a quarter of the diameter (5 mm): the measured centroid stands.
+    apart = close[:3] + [SimpleNamespace(centroid=body_centre + np.array([0, 0, 1.5]))]
+    assert tracker._centroid_by_body(rec, apart) is rec  # type: ignore[arg-type]

@@ -83,3 +83,26 @@ def test_the_kernel_warms_up_and_a_centroid_at_the_epipole_pairs_with_nothing() 
     assert np.isnan(correspondence.centroid_distances(calibration.packed, F.ravel(), np.zeros((1, 2)),
                                                       np.ones((1, 2)))).all()
     assert pair_candidates(calibration, F, [(0.0, 0.0)], [(1.0, 1.0)], [1.0], [1.0], 6.0) == []
+
+
+def test_a_pair_whose_integrated_attenuations_differ_in_mm2_is_a_mismatch() -> None:
+    """The robot's two images hold the same attenuation volume (strength x pixel area at the object):
+    equal in mm^2, the pair's strength mismatch is 0 however the views magnify; a quarter, ``log 4``."""
+    from types import SimpleNamespace
+
+    from appliance.recognition.tracker import PostureTracker
+
+    calibration = _calibration((0, 0, 0, 0, 0), (0, 0, 0, 0, 0))
+    tracker = PostureTracker(calibration)
+    X = np.array([12.0, -7.0, 5.0])
+
+    def blob(name: str, strength_mm2: float, width_mm: float) -> SimpleNamespace:
+        view = calibration.views[name]
+        mm_per_px = float(np.linalg.norm(X - view.source_mm)) / float(view.K[0, 0])
+        return SimpleNamespace(centroid_px=tuple(view.project(X[None])[0].tolist()), width_px=width_mm / mm_per_px,
+                               strength=strength_mm2 / mm_per_px ** 2)
+
+    width, strength = tracker._size_mismatch({"p": blob("p", 3.0, 1.0), "q": blob("q", 3.0, 1.0)})
+    assert width == pytest.approx(0.0, abs=1e-6) and strength == pytest.approx(0.0, abs=1e-6)
+    width, strength = tracker._size_mismatch({"p": blob("p", 0.75, 1.0), "q": blob("q", 3.0, 1.0)})
+    assert width == pytest.approx(0.0, abs=1e-6) and strength == pytest.approx(np.log(4.0), abs=1e-6)
