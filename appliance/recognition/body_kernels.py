@@ -77,9 +77,11 @@ ORDER_CHI2 = 25.0
 #: centroid's (:data:`CENTROID_SIGMA_PX`), which the line goes through.
 AXIS_LINE_SIGMA_PX = CENTROID_SIGMA_PX
 #: The axis planes move the centroid only where the 3D axis is known to this (its sigma, rad): beyond it
-#: (the frame is flagged, ``settings.max_axis_sigma_deg``'s default) a view's plane is as uncertain as its
-#: 2D axis, and on the dev seeds (robots 3 and 7) the planes' line moved such centroids as often away from
-#: the truth as towards it (robot 7 seed 14 pose 7, axis 11 deg uncertain: 0.33 -> 1.42 mm).
+#: a view's plane is as uncertain as its 2D axis, and on the dev seeds (robots 3 and 7) the planes' line
+#: moved such centroids as often away from the truth as towards it (robot 7 seed 14 pose 7, axis 11 deg
+#: uncertain: 0.33 -> 1.42 mm). It was chosen at ``settings.max_axis_sigma_deg``'s earlier default, 2.5 deg;
+#: that flag limit is now 1.5 deg, so frames flagged for an axis sigma of 1.5-2.5 deg are still moved (not
+#: re-measured at 1.5).
 AXIS_PLANES_MAX_SIGMA_RAD = math.radians(2.5)
 
 # ``inp``: centroid (3), direction (3), then per view IN_VIEW_SIZE numbers from IN_VIEW, then the tail.
