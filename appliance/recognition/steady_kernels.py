@@ -78,10 +78,12 @@ OUT_VIEW = 0
 SEARCH_SIZE = roi_kernels.OUT_SIZE + 2 * 5
 R_ROI = SEARCH_SIZE
 R_AXIS_SIGMA = SEARCH_SIZE + 4
-R_LEAN = SEARCH_SIZE + 5  # 1 if the lean pass found this view, 2 if the tight ROI did, 0 if the ROI did
+R_FOUND_BY = SEARCH_SIZE + 5  # which search found this view: FOUND_BY_ROI, FOUND_BY_LEAN or FOUND_BY_TIGHT
 R_EXTENT = SEARCH_SIZE + 6  # 3: the body's (mask's) s range and largest |t| about the centroid, along the axis
 R_RESIDUAL = SEARCH_SIZE + 9  # the prediction's error in this view (px): found centroid - predicted
 OUT_VIEW_SIZE = SEARCH_SIZE + 10
+#: The values of ``R_FOUND_BY``: the ROI, the lean pass (prototype), the tight ROI.
+FOUND_BY_ROI, FOUND_BY_LEAN, FOUND_BY_TIGHT = 0.0, 1.0, 2.0
 OUT_FRONT = 2 * OUT_VIEW_SIZE
 OUT_FRONT_STATUS = OUT_FRONT + reconstruction_kernels.OUT_SIZE
 #: The plain frame's posture (see _finish): 1 if plain, then its centroid, direction, tips (head first),
@@ -704,7 +706,7 @@ def search_pair(image_p, image_q, coarse_p, coarse_q, log_table, g, params, ring
                 params, near_hw, levels, axis_saturation, head_ramp_ratio, head_min_ramp_px, gate_px, out, o)
             if lean:
                 x0, y0 = lx0, ly0
-        found, via = lean, 1.0 if lean else 0.0
+        found, via = lean, FOUND_BY_LEAN if lean else FOUND_BY_ROI
         if not found and inp[IN_TIGHT] != 0.0 and inp[v + V_HAS_OUTLINE] != 0.0 and inp[v + V_KNOWN_SIGMA] > 0.0:
             # The tight ROI first, where the last frame's prediction error allows one (NaN: it does not) and the
             # noise sigma is known (it is measured on the ROI: its pixels, not the tight ROI's).
@@ -720,7 +722,7 @@ def search_pair(image_p, image_q, coarse_p, coarse_q, log_table, g, params, ring
                         ring_outer, ring_inner, near_hw, pu, pv, gate_px, axis_saturation, levels, head_ramp_ratio,
                         head_min_ramp_px, view_out)
                     if status == roi_kernels.FOUND and _is_as_predicted(view_out, prev, o, pu, pv, allowance):
-                        found, via = True, 2.0
+                        found, via = True, FOUND_BY_TIGHT
                         x0, y0, x1, y1 = tx0, ty0, tx1, ty1
         if not found:
             status, weights, mask = roi_kernels.search_view(
@@ -730,7 +732,7 @@ def search_pair(image_p, image_q, coarse_p, coarse_q, log_table, g, params, ring
             if status != roi_kernels.FOUND:
                 return PAIR_PER_VIEW, w_p, m_p, w_q, m_q
         out[o + R_ROI], out[o + R_ROI + 1], out[o + R_ROI + 2], out[o + R_ROI + 3] = x0, y0, x1, y1
-        out[o + R_LEAN] = via
+        out[o + R_FOUND_BY] = via
         c = roi_kernels.CENTROID
         out[o + R_RESIDUAL] = math.hypot(view_out[c] - pu, view_out[c + 1] - pv)
         _extent(out, o, mask, x0 + int(view_out[roi_kernels.REFINED + 2]), y0 + int(view_out[roi_kernels.REFINED]))

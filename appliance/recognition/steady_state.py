@@ -111,7 +111,8 @@ class SteadyPair:
     def lean_views(self) -> tuple[bool, bool]:
         """Whether the last call found view p and view q by the lean pass."""
         o = sk.OUT_VIEW_SIZE
-        return bool(self.out[sk.R_LEAN] == 1.0), bool(self.out[o + sk.R_LEAN] == 1.0)
+        return (bool(self.out[sk.R_FOUND_BY] == sk.FOUND_BY_LEAN),
+                bool(self.out[o + sk.R_FOUND_BY] == sk.FOUND_BY_LEAN))
 
     def usable(self, image_p: np.ndarray, image_q: np.ndarray, bg_p: LogBackground | None,
                bg_q: LogBackground | None) -> bool:

@@ -14,7 +14,7 @@ import pytest
 from appliance.geometry import Calibration
 from appliance.recognition import PostureTracker, RecognitionSettings
 from appliance.recognition import tracker as tracker_module
-from appliance.recognition.steady_kernels import OUT_VIEW_SIZE, R_LEAN, clutter_axis_sigma
+from appliance.recognition.steady_kernels import FOUND_BY_TIGHT, OUT_VIEW_SIZE, R_FOUND_BY, clutter_axis_sigma
 from appliance.recognition.features import clutter_axis_sigma_rad
 from appliance.recognition.steady_state import SteadyPair
 from appliance.robots import load_robots
@@ -220,7 +220,7 @@ def _tight_views(tracker: PostureTracker) -> tuple[bool, bool]:
     out = tracker._pair.out
     if tracker.last_search != "roi" or not out.size:
         return False, False
-    return bool(out[R_LEAN] == 2.0), bool(out[OUT_VIEW_SIZE + R_LEAN] == 2.0)
+    return bool(out[R_FOUND_BY] == FOUND_BY_TIGHT), bool(out[OUT_VIEW_SIZE + R_FOUND_BY] == FOUND_BY_TIGHT)
 
 
 def _tight_track(views: dict[str, object], calibration: Calibration, robot: int, centres: list[np.ndarray],
