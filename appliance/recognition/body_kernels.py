@@ -138,8 +138,8 @@ def _end_sigma_mm(head: bool, cone: float, diameter: float, mm_per_px: float, si
 @kernel
 def flat_tail_of(body: np.ndarray) -> bool:
     """Whether the body's tail is a flat end whose crossing places it: a cylinder at least as long as the
-    diameter (robot 4's, 0.6 mm on a 1.5 mm diameter, is not: its measured ends are kept, or, with the order
-    undecided, its tips put half its length either side of the centroid)."""
+    diameter (robot 4's, 0.6 mm on a 1.5 mm diameter, is not: its measured ends are kept unless their length is
+    off the body's, :func:`place`)."""
     return body[B_LENGTH] - body[B_CONE] >= body[B_DIAMETER]
 
 
@@ -407,10 +407,8 @@ def place(G: np.ndarray, inp: np.ndarray, body: np.ndarray, out: np.ndarray) -> 
         b1, chi1 = _combine(rows[1])
         chosen = 1 if chi1 < chi0 else 0   # a stable sort by chi-square
         b, chi2, other = (b1, chi1, chi0) if chosen == 1 else (b0, chi0, chi1)
-        # (a body without a flat tail, robot 4, has the moment centroid alone: no order evidence, but its
-        # tips are still put either side of it, below)
-        ordered = rows[chosen, _E_CORE_N] > 1 or (rows[chosen, _E_CORE_N] == 1 and not flat_tail_of(body))
-        placed = rows[chosen, _E_CORE_N] > 1 and other - chi2 >= ORDER_CHI2
+        ordered = rows[chosen, _E_CORE_N] > 1
+        placed = ordered and other - chi2 >= ORDER_CHI2
         if placed:
             sign = 1.0 if chosen == 0 else -1.0   # +u points to the head under this order
             first = 0 if chosen == 0 else 3   # where the head goes among the tips
@@ -426,8 +424,6 @@ def place(G: np.ndarray, inp: np.ndarray, body: np.ndarray, out: np.ndarray) -> 
             # asymmetry (L / 2 - centroid_from_tail: robot 7 0.9 mm, robot 3 2.4 mm) of the truth. The
             # measured ends err by 0 and ~0.7 of the cone (an apex measured as a flat end: 2 and 5 mm), or,
             # where the head claim was withheld, by the cone-model tip put at the wrong end as well.
-            # Robot 4 (no flat tail: the centroid alone, never ordered): 0.69 mm each, against 0.16 and 1.42 mm
-            # for its measured ends (13 fresh seeds, 9 such frames).
             for i in range(3):
                 out[OUT_CENTROID + i] = c[i]
                 out[OUT_TIPS + i] = c[i] + 0.5 * length * u[i]
@@ -455,6 +451,16 @@ def place(G: np.ndarray, inp: np.ndarray, body: np.ndarray, out: np.ndarray) -> 
         out[OUT_NOISE] = noise
         if abs(measured - length) > LENGTH_SIGMAS * noise:
             out[OUT_FLAG] = FLAG_LENGTH
+            if not ordered and rows[chosen, _E_CORE_N] == 1 and not flat_tail_of(body):
+                # A body without a flat tail (robot 4), its measured ends kept and their length off: the apex
+                # was measured as a flat end (0.16 and 1.42 mm off, 13 fresh seeds, 9 frames). Its tips go
+                # half its length either side of the centroid, as an undecided order's (0.73 mm each); where
+                # the length fits, the measured ends stay (0.03-0.16 mm there: the cone model's tip).
+                for i in range(3):
+                    out[OUT_CENTROID + i] = c[i]
+                    out[OUT_TIPS + i] = c[i] + 0.5 * length * u[i]
+                    out[OUT_TIPS + 3 + i] = c[i] - 0.5 * length * u[i]
+                out[OUT_PLACED] = 1.0
 
 
 @kernel
