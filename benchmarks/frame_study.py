@@ -7,14 +7,13 @@ the centroid error along and across the image axis, each correction's reconstruc
 integrated attenuation times the pixel area at the object (mm^2; the body's expected value is its
 attenuation per mm times its volume).
 """
-import sys, math, json
+import sys, math
 import numpy as np
 sys.path.insert(0, '.')
 import benchmarks.accuracy as acc
-from appliance.recognition import PostureTracker, RecognitionSettings, body_corrections
-from appliance.recognition import tracker as trk
+from appliance.recognition import PostureTracker, RecognitionSettings
 from appliance.robots import load_robots
-from drivers.loopback.xray_render import BiplaneRenderer, ImagingSettings, RobotBody, RobotPose, VesselPhantom, biplane_views
+from drivers.loopback.xray_render import BiplaneRenderer, ImagingSettings, RobotBody, VesselPhantom, biplane_views
 from drivers.loopback.scene_builders import S_BEND_CENTRELINE_MM, smooth_centreline
 
 seed, robot_id, idx = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])
