@@ -652,7 +652,7 @@ class PostureTracker:
                 or self.settings.estimator == "paper"):
             return 0.0
         masses = view_masses_mm2(self.calibration, blobs, posture.centroid_mm)
-        heavy = heavy_view(masses, body.mass_mm2, self.settings.max_mass_excess)
+        heavy = heavy_view(masses, body.mass_mm2, self.settings.max_mass_excess, self.settings.max_mass_deficit)
         if heavy is None:
             return 0.0
         slide = centroid_slide_mm(masses, heavy, body.mass_mm2, body.length_mm)
