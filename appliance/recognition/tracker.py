@@ -25,6 +25,9 @@ off the body's) are :mod:`.body_corrections`.
 A tracker given the robot's body (``body=``, with ``settings.body_prior``) places the centroid and tips
 of every ok posture by it (:func:`.body_prior.place_body`; on the plain frames' postures within the pair's
 compiled call, :func:`.steady_kernels._place_body`: the same compiled arithmetic on the same numbers).
+On the general path each view's blob is weighed against the body (:mod:`.body_mass`): a view heavier than
+the body, the other clean, has another structure merged into it, its moment centroid's possible slide is
+given to the placement (the ends place the body) and the frame is flagged.
 """
 from __future__ import annotations
 
