@@ -7,7 +7,8 @@ times its volume (:attr:`.BodyModel.mass_mm2`). Per robot, cold and ``--tracked`
 measured / expected over the views, the frames whose ratio is off the robot's clean spread, and with
 ``--json`` writes every frame's ratios, the centroid error and each view's centroid error along its axis.
 
-Usage: ``python benchmarks/mass_study.py --seeds 1,2,3 [--robots 6] [--tracked] [--poses N] [--json F]``.
+Usage: ``python benchmarks/mass_study.py --seeds 1,2,3 [--robots 6] [--tracked] [--poses N] [--json F]
+[--max-mass-excess X]`` (X large: the tracker without the mass check).
 Every frame takes the tracker's general path (the steady pair's plain posture is declined: the same
 posture to the last bit, with its blobs at hand).
 """
@@ -39,7 +40,8 @@ def _along_px(feat_centroid: np.ndarray, axis: np.ndarray, true_px: np.ndarray) 
     return float((np.asarray(feat_centroid) - true_px) @ np.asarray(axis))
 
 
-def study(seed: int, robot_id: int, spec: Any, tracked: bool, poses_n: int) -> list[dict[str, Any]]:
+def study(seed: int, robot_id: int, spec: Any, tracked: bool, poses_n: int, max_mass_excess: float
+          ) -> list[dict[str, Any]]:
     views = biplane_views()
     cal = acc.true_calibration(views)
     phantom = VesselPhantom(smooth_centreline(S_BEND_CENTRELINE_MM), acc.VESSEL_RADIUS_MM,
@@ -49,7 +51,8 @@ def study(seed: int, robot_id: int, spec: Any, tracked: bool, poses_n: int) -> l
     body = RobotBody(spec.length_mm, spec.diameter_mm, spec.tip_angle_deg, spec.attenuation_per_mm)
     renderer = BiplaneRenderer(views, body, vessel=phantom, settings=imaging, seed=seed + robot_id)
     step_rng = np.random.default_rng([seed, robot_id, 1])
-    tracker = PostureTracker(cal, RecognitionSettings(dark_level=imaging.dark_level), body=spec)
+    tracker = PostureTracker(cal, RecognitionSettings(dark_level=imaging.dark_level, max_mass_excess=max_mass_excess),
+                             body=spec)
     expected = BodyModel.of(spec).mass_mm2
     seen: dict[str, Any] = {}
     posture_of = tracker._posture
@@ -92,6 +95,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--tracked", action="store_true")
     parser.add_argument("--poses", type=int, default=30)
     parser.add_argument("--json")
+    parser.add_argument("--max-mass-excess", type=float, default=RecognitionSettings().max_mass_excess,
+                        help="the tracker's setting (a large value: no view is heavy, the check is off)")
     args = parser.parse_args(argv)
     # Decline every plain posture: the tracker's general path, same numbers, with its blobs.
     SteadyPair.plain_posture = lambda self, frame, t, timings_us=None: None
@@ -100,7 +105,8 @@ def main(argv: list[str] | None = None) -> int:
     for robot_id in [int(r) for r in args.robots.split(",")]:
         rows = []
         for seed in [int(s) for s in args.seeds.split(",")]:
-            rows += [dict(r, seed=seed) for r in study(seed, robot_id, robots[robot_id], args.tracked, args.poses)]
+            rows += [dict(r, seed=seed) for r in study(seed, robot_id, robots[robot_id], args.tracked, args.poses,
+                                                               args.max_mass_excess)]
         out[str(robot_id)] = rows
         ratios = np.array([r["ratio"][n] for r in rows if "ratio" in r for n in "pq"])
         clean = np.array([r["ratio"][n] for r in rows if "ratio" in r for n in "pq" if r["clutter"][n] <= 0.05])

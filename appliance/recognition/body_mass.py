@@ -68,5 +68,5 @@ def centroid_slide_mm(masses_mm2: dict[str, float], heavy: str, body_mass_mm2: f
     it, or beyond an end it runs on from; robot 6, 1357911 pose 12: 12 % of view q's blob, the centroid
     0.59 mm off along the axis against 1.8 mm)."""
     mass = masses_mm2[heavy]
-    return max(mass - body_mass_mm2, 0.0) / mass * 0.5 * length_mm
+    return max(mass - body_mass_mm2, 0.0) / mass * length_mm / math.sqrt(12.0)
 
