@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 
 import numpy as np
 import pytest
@@ -84,10 +85,10 @@ def test_only_one_view_over_the_body_with_the_other_clean_is_heavy() -> None:
     assert heavy_view({"p": math.nan, "q": math.nan}, m, 0.04, 0.08) is None
 
 
-def test_the_slide_is_the_excess_share_of_the_blob_times_half_the_body() -> None:
-    # Robot 6, seed 1357911 pose 12: view q 153.6 mm^2 against 134.8: 12 % of q's blob, half of 30 mm.
+def test_the_slide_is_the_excess_share_of_the_blob_times_the_bodys_rms_lever_arm() -> None:
+    # Robot 6, seed 1357911 pose 12: view q 153.6 mm^2 against 134.8: 12 % of q's blob, 30 mm / sqrt(12).
     assert centroid_slide_mm({"p": 129.9, "q": 153.6}, "q", 134.8, 30.0) == pytest.approx(
-        (153.6 - 134.8) / 153.6 * 15.0)
+        (153.6 - 134.8) / 153.6 * 30.0 / math.sqrt(12.0))
     assert centroid_slide_mm({"p": 129.9, "q": 130.0}, "q", 134.8, 30.0) == 0.0
 
 
@@ -138,6 +139,7 @@ def test_the_tracker_flags_and_weighs_a_heavy_view(calibration: Calibration, cle
     tracker._search_full = heavier
     flagged = tracker.process(pair.images["p"], pair.images["q"])
     assert flagged.ok and flagged.ambiguous and not plain.ambiguous
-    assert "view q's blob weighs 1.1" in flagged.reason
+    weighs = re.search(r"view q's blob weighs ([0-9.]+) of the body \(view p's ([0-9.]+)\)", flagged.reason)
+    assert weighs and float(weighs.group(1)) > 1.04 and 0.92 <= float(weighs.group(2)) <= 1.04
     assert np.linalg.norm(flagged.centroid_mm - pose.centroid_mm) < 0.1
     assert not np.array_equal(flagged.centroid_mm, plain.centroid_mm)
