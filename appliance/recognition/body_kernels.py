@@ -15,7 +15,9 @@ end's neighbourhood off the body and its 5-95 % range: as numpy masks, a dilatio
 Input (``inp``, float64, the ``IN_*`` offsets): the posture's centroid and direction, per view whether it
 was observed, its centroid and tips (pixels, the posture's order), :attr:`.Blob.clutter` and its ends'
 :func:`.body_prior.end_clutter`, then the measured length (NaN if unknown), the axis sigma (rad),
-``settings.max_clutter`` and whether the head is identified. ``body`` (float64): the body's ``B_*`` numbers.
+``settings.max_clutter``, whether the head is identified and how far a view heavier than the body may have
+moved the moment centroid along the axis (mm, :func:`.body_mass.centroid_slide_mm`; 0 on the plain frames,
+which are not weighed). ``body`` (float64): the body's ``B_*`` numbers.
 Output (``out``, the ``OUT_*`` offsets).
 """
 from __future__ import annotations
@@ -94,7 +96,10 @@ IN_MEASURED = IN_VIEW + 2 * IN_VIEW_SIZE
 IN_AXIS_SIGMA = IN_MEASURED + 1
 IN_MAX_CLUTTER = IN_MEASURED + 2
 IN_HEAD_IDENTIFIED = IN_MEASURED + 3
-IN_SIZE = IN_MEASURED + 4
+#: How far (mm, one sigma) a view's merged structure may have moved the moment centroid along the axis (0: no
+#: view heavier than the body; :func:`.body_mass.centroid_slide_mm`), added to its sigmas in quadrature.
+IN_CENTROID_SLIDE = IN_MEASURED + 4
+IN_SIZE = IN_MEASURED + 5
 
 # ``body``: the robot's length, centroid from the tail face, cone length, diameter.
 B_LENGTH, B_CENTROID_FROM_TAIL, B_CONE, B_DIAMETER = 0, 1, 2, 3
@@ -212,6 +217,11 @@ def _evidence(G: np.ndarray, inp: np.ndarray, body: np.ndarray, head_end: int, e
         e[_E_CORE_B] = 0.0
         e[_E_CORE_S] = clean_c * (1.0 + CENTROID_CLUTTER_GAIN * (ratio * ratio))
         e[_E_CORE_C] = clean_c
+        slide = inp[IN_CENTROID_SLIDE]
+        if slide > 0.0:
+            # (known, the slide is part of a clean frame's noise too: the tails' disagreement with it is expected)
+            e[_E_CORE_S] = math.hypot(e[_E_CORE_S], slide)
+            e[_E_CORE_C] = math.hypot(clean_c, slide)
         e[_E_CORE_WHAT] = -1.0
     else:
         n_core = 0   # no view, no estimate (and no tail either)

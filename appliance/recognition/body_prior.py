@@ -79,12 +79,18 @@ class BodyModel:
     centroid_from_tail_mm: float
     cone_length_mm: float
     diameter_mm: float
+    #: The body's attenuation integrated over its volume (mm^2: attenuation per mm x volume), what a clean
+    #: view's blob weighs (:func:`.body_mass.view_masses_mm2`); None where the robot's material is not known.
+    mass_mm2: float | None = None
 
     @classmethod
     def of(cls, spec: object) -> BodyModel:
-        """The model of a catalogue robot (anything with RobotSpec's four attributes)."""
+        """The model of a catalogue robot (anything with RobotSpec's four attributes; its mass where it has
+        ``attenuation_per_mm`` and ``volume_mm3``)."""
+        attenuation, volume = getattr(spec, "attenuation_per_mm", None), getattr(spec, "volume_mm3", None)
+        mass = float(attenuation) * float(volume) if attenuation is not None and volume is not None else None
         return cls(float(spec.length_mm), float(spec.centroid_from_tail_mm),  # type: ignore[attr-defined]
-                   float(spec.cone_length_mm), float(spec.diameter_mm))  # type: ignore[attr-defined]
+                   float(spec.cone_length_mm), float(spec.diameter_mm), mass)  # type: ignore[attr-defined]
 
     @functools.cached_property
     def packed(self) -> np.ndarray:
@@ -183,7 +189,8 @@ _ABSENT = (0.0,) * bk.IN_VIEW_SIZE
 
 def place_body(calibration: Calibration, posture: Posture, body: BodyModel, settings: RecognitionSettings,
                clutter: dict[str, float] | None = None, axis_sigma_rad: float = 0.0,
-               ends: dict[str, tuple[float, float]] | None = None, *, fresh: bool = False) -> Posture:
+               ends: dict[str, tuple[float, float]] | None = None, *, fresh: bool = False,
+               centroid_slide_mm: float = 0.0) -> Posture:
     """The posture with its centroid and tips placed by the known body (see the module docstring).
 
     ``clutter``: per view, :attr:`.Blob.clutter` (both paths have it; a view left out counts as clean);
@@ -192,6 +199,8 @@ def place_body(calibration: Calibration, posture: Posture, body: BodyModel, sett
     :func:`end_clutter`. A lost posture, one without an axis (unresolved mirror ambiguity) or without
     tips is returned as it is, and so is every posture of the paper's estimator (kept verbatim).
     Otherwise a copy (the posture given is left as it was); the arithmetic is :func:`.body_kernels.place`.
+    ``centroid_slide_mm``: how far (one sigma) a view heavier than the body may have moved the moment centroid
+    along the axis (:func:`.body_mass.centroid_slide_mm`), added to its sigma: the ends place the body.
     ``fresh``: the posture is the caller's own, just made and held by no one else (the tracker's general
     path): placed in place, without the copy (``copy.copy`` of a posture is ~100 us after a frame's copy
     has evicted the caches, more than the rest of the placement; issue 8).
@@ -212,7 +221,7 @@ def place_body(calibration: Calibration, posture: Posture, body: BodyModel, sett
         numbers += (1.0, cu, cv, u0, v0, u1, v1, clutter.get(name, 0.0), near[0], near[1])
     measured = posture.length_mm
     numbers += (math.nan if measured is None else measured, axis_sigma_rad, settings.max_clutter,
-                1.0 if posture.head_identified else 0.0)
+                1.0 if posture.head_identified else 0.0, centroid_slide_mm)
     # (copy.copy: dataclasses.replace re-runs __init__, a few us a frame)
     return _apply(calibration.packed, posture if fresh else copy.copy(posture), body, numbers)
 

@@ -243,6 +243,14 @@ class RecognitionSettings(StrictModel):
     #: centroid and the ends that are clean, give the body's volume centroid and its tips. Off (or no body
     #: given): the model-free centroid and tips.
     body_prior: bool = True
+    #: With the body's mass known (:attr:`.BodyModel.mass_mm2`), a view whose blob weighs more than the body by
+    #: this fraction, the other's within ``max_mass_deficit`` below to this above (clean), has another
+    #: structure merged into it (:func:`.body_mass.heavy_view`): its moment centroid is given the sigma of the
+    #: slide the excess can make, so the ends place the body, and the frame is flagged. Robot 6's clean views
+    #: (linear attenuation) weigh 0.93-1.007 of the body (dev seeds 1-5, cold and tracked), its views over a
+    #: vessel that did not slide up to ~1.03.
+    max_mass_excess: float = Field(0.04, gt=0)
+    max_mass_deficit: float = Field(0.08, gt=0, lt=1)
 
     # -- tracking -----------------------------------------------------------------------------------
     #: Margin (px) of the region of interest around the predicted robot image.

@@ -680,6 +680,8 @@ def _place_body(out, inp, G):  # pragma: no cover - compiled
     b[B.IN_AXIS_SIGMA] = out[OUT_FRONT + reconstruction_kernels.OUT_SIGMA]
     b[B.IN_MAX_CLUTTER] = inp[IN_FINISH]
     b[B.IN_HEAD_IDENTIFIED] = 1.0
+    # (a plain frame is not weighed against the body: the general path's check)
+    b[B.IN_CENTROID_SLIDE] = 0.0
     B.place(G, b, inp[IN_BODY + 1:IN_BODY + 1 + B.B_SIZE], placed)
 
 

@@ -25,6 +25,9 @@ off the body's) are :mod:`.body_corrections`.
 A tracker given the robot's body (``body=``, with ``settings.body_prior``) places the centroid and tips
 of every ok posture by it (:func:`.body_prior.place_body`; on the plain frames' postures within the pair's
 compiled call, :func:`.steady_kernels._place_body`: the same compiled arithmetic on the same numbers).
+On the general path each view's blob is weighed against the body (:mod:`.body_mass`): a view heavier than
+the body, the other clean, has another structure merged into it, its moment centroid's possible slide is
+given to the placement (the ends place the body) and the frame is flagged.
 """
 from __future__ import annotations
 
@@ -44,6 +47,7 @@ from appliance.geometry import (
 )
 from appliance.geometry_kernels import project_segment
 from appliance.recognition import body_corrections
+from appliance.recognition.body_mass import centroid_slide_mm, heavy_view, pixel_scales_mm, view_masses_mm2
 from appliance.recognition.body_prior import BodyModel, end_clutter, ends_used, place_body
 from appliance.recognition.correspondence import pair_candidates, pairing_rms
 from appliance.recognition.detection import detect
@@ -436,10 +440,9 @@ class PostureTracker:
                         optimal=False)[0]
         if not np.all(np.isfinite(X)):
             return 0.0, 0.0
-        scales = {name: float(np.linalg.norm(X - self.calibration.views[name].source_mm))
-                  / float(self.calibration.views[name].K[0, 0]) for name in blobs}
+        scales = pixel_scales_mm(self.calibration, X)
         widths = [blob.width_px * scales[name] for name, blob in blobs.items()]
-        strengths = [blob.strength * scales[name] ** 2 for name, blob in blobs.items()]
+        strengths = list(view_masses_mm2(self.calibration, blobs, X).values())
         return (abs(math.log(max(widths[0], 1e-6) / max(widths[1], 1e-6))),
                 abs(math.log(max(strengths[0], 1e-12) / max(strengths[1], 1e-12))))
 
@@ -637,9 +640,32 @@ class PostureTracker:
                 if blob.clutter > max_clutter and view is not None and name in self._log_bg:
                     ends[name] = end_clutter(images[name], self._log_bg[name], blob, view.centroid_px, view.tips_px,
                                              self.settings, which)
+        slide = self._centroid_slide_mm(posture, blobs)
         # (fresh: the posture _posture just made, held by no one else)
         return place_body(self.calibration, posture, self.body, self.settings, clutter, rec.axis_sigma_rad or 0.0,
-                          ends, fresh=True)
+                          ends, fresh=True, centroid_slide_mm=slide)
+
+    def _centroid_slide_mm(self, posture: Posture, blobs: dict[str, Blob]) -> float:
+        """Where one view's blob is heavier than the body (:func:`.body_mass.heavy_view`: another structure merged
+        into it), how far that can have moved the moment centroid along the axis (mm,
+        :func:`.body_mass.centroid_slide_mm`), the posture flagged with the reason; 0 otherwise (and without the
+        body's mass, and for the paper's estimator, kept verbatim)."""
+        body = self.body
+        if (body is None or body.mass_mm2 is None or posture.centroid_mm is None
+                or self.settings.estimator == "paper"):
+            return 0.0
+        masses = view_masses_mm2(self.calibration, blobs, posture.centroid_mm)
+        heavy = heavy_view(masses, body.mass_mm2, self.settings.max_mass_excess, self.settings.max_mass_deficit)
+        if heavy is None:
+            return 0.0
+        slide = centroid_slide_mm(masses, heavy, body.mass_mm2, body.length_mm)
+        posture.ambiguous = True
+        other = "q" if heavy == "p" else "p"
+        posture.reason = "; ".join(filter(None, [posture.reason, (
+            f"view {heavy}'s blob weighs {masses[heavy] / body.mass_mm2:.2f} of the body (view {other}'s "
+            f"{masses[other] / body.mass_mm2:.2f}): another structure merged into it, its centroid may have slid "
+            f"~{slide:.1f} mm along the axis; the ends place the body")]))
+        return slide
 
     def _remember(self, posture: Posture) -> None:
         assert posture.centroid_mm is not None
