@@ -64,9 +64,9 @@ def heavy_view(masses_mm2: dict[str, float], body_mass_mm2: float, excess: float
 
 def centroid_slide_mm(masses_mm2: dict[str, float], heavy: str, body_mass_mm2: float, length_mm: float) -> float:
     """How far (mm, one sigma) the excess of the ``heavy`` view can move the moment centroid along the axis:
-    the excess' fraction of that view's blob times half the body's length (the excess lies somewhere along
-    it, or beyond an end it runs on from; robot 6, 1357911 pose 12: 12 % of view q's blob, the centroid
-    0.59 mm off along the axis against 1.8 mm)."""
+    the excess' fraction of that view's blob times L / sqrt(12), the RMS lever arm of an excess that may lie
+    anywhere along the body, uniformly (robot 6, 1357911 pose 12: 12 % of view q's blob, the centroid 0.59 mm
+    off along the axis; L / 2 instead measured within 0.001 mm on dev seeds 1-20, robots 3 and 6)."""
     mass = masses_mm2[heavy]
     return max(mass - body_mass_mm2, 0.0) / mass * length_mm / math.sqrt(12.0)
 
