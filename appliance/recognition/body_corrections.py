@@ -63,9 +63,9 @@ def head_by_body(calibration: Calibration, F: np.ndarray, settings: RecognitionS
             or not body.length_mm - body.cone_length_mm >= body.diameter_mm
             or any(feat.reach is None for feat in feats.values())):
         return rec   # (a body without a flat tail, robot 4, has no tail crossing to measure: body_kernels)
-    if rec.head_identified and not any(feat.head_index is not None and blobs[name].clutter > s.max_clutter
-                                       for name, feat in feats.items()):
-        return rec   # claimed by clean views only
+    if (rec.head_identified and all(feat.head_index is not None for feat in feats.values())
+            and not any(blobs[name].clutter > s.max_clutter for name in feats)):
+        return rec   # claimed by both views, both clean
     clutter = {name: blob.clutter for name, blob in blobs.items()}
     rows_plus, rows_minus, plus_index = axial_rows(calibration, rec.centroid, rec.direction, feats, clutter, body)
     at_plus, at_minus = chi2_of(rows_plus, s.head_body_cap), chi2_of(rows_minus, s.head_body_cap)
