@@ -2,8 +2,8 @@
 
 :class:`.PostureTracker` applies these, in this order, to a frame whose reconstruction passed its checks:
 
-* :func:`head_by_body` - a head left unidentified, or claimed over another structure, told by the body's
-  shape where that is decisive (:mod:`.head_by_body`);
+* :func:`head_by_body` - a head left unidentified, or claimed over another structure or by one view alone,
+  told by the body's shape where that is decisive (:mod:`.head_by_body`);
 * :func:`mirror_by_body` - an unresolved mirror ambiguity (the axis near an epipolar plane) resolved by the
   body's fits under every hypothesis (:class:`.axis_by_length.PlaneScan`), or else its centroid placed where
   those fits agree on it (:func:`centroid_by_body`);
@@ -46,7 +46,7 @@ def head_by_body(calibration: Calibration, F: np.ndarray, settings: RecognitionS
                  rec: Reconstruction, blobs: dict[str, Blob], feats: dict[str, Features2D],
                  previous: np.ndarray | None, rejection: Rejection) -> Reconstruction:
     """The head told by the known body (:mod:`.head_by_body`) where the views' ramps leave it unidentified
-    or claim it over another structure.
+    or claim it over another structure or by one view alone.
 
     Called on a frame that passed the checks (``rejection``, the tracker's). The body is fitted along the axis
     with its head at either end, each view's ends measured as the cone's apex and the flat tail
@@ -54,18 +54,21 @@ def head_by_body(calibration: Calibration, F: np.ndarray, settings: RecognitionS
     (``settings.head_body_fit`` per degree of freedom), the head is there: the reconstruction is redone
     with both views claiming it (the cone's apex then extrapolated from its ramp), and taken if it
     passes the same checks. An unidentified head whose fit is not decisive stays unidentified; a claim over another
-    structure stands unless the fit decisively puts the head at the other end. Claims by clean views
-    only are left alone (a plain frame, :mod:`.steady_state`, never reaches this), and so is a body whose
-    cylinder is shorter than its diameter (robot 4: its tail is no step, :mod:`.body_kernels`).
+    structure, or by one view alone, stands unless the fit decisively puts the head at the other end (one
+    clean view's ramps can lie too: a vessel alongside the tail, its clutter 0.12, made a 12 px "ramp" there,
+    study seed 4040404 robot 2 pose 26; dev seeds 1-20 and standing seeds 20261121, 777, 4242: no other frame
+    changed). Claims by both views, both clean, are left alone, and so is a body whose cylinder is shorter
+    than its diameter (robot 4: its tail is no step, :mod:`.body_kernels`). (A plain frame, :mod:`.steady_state`,
+    never reaches this: one claimed by one clean view alone is not checked on the tracked path.)
     """
     s = settings
     if (body is None or s.estimator == "paper" or rec.direction is None or not body.cone_length_mm > 0
             or not body.length_mm - body.cone_length_mm >= body.diameter_mm
             or any(feat.reach is None for feat in feats.values())):
         return rec   # (a body without a flat tail, robot 4, has no tail crossing to measure: body_kernels)
-    if rec.head_identified and not any(feat.head_index is not None and blobs[name].clutter > s.max_clutter
-                                       for name, feat in feats.items()):
-        return rec   # claimed by clean views only
+    if (rec.head_identified and all(feat.head_index is not None for feat in feats.values())
+            and not any(blobs[name].clutter > s.max_clutter for name in feats)):
+        return rec   # claimed by both views, both clean
     clutter = {name: blob.clutter for name, blob in blobs.items()}
     rows_plus, rows_minus, plus_index = axial_rows(calibration, rec.centroid, rec.direction, feats, clutter, body)
     at_plus, at_minus = chi2_of(rows_plus, s.head_body_cap), chi2_of(rows_minus, s.head_body_cap)

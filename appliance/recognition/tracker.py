@@ -18,9 +18,9 @@ Where the views' head claims disagree and only one view overlaps another structu
 claim is taken (``_head_by_clean_view``; the reconstruction alone leaves such a head unidentified).
 A head claimed by one view alone, over another structure, whose profiles' evidence is weak
 (:func:`head_claim_confidence`) is withheld (``_head_in_doubt``): a wrong claim swaps the tips.
-Where the robot's body is known, a head left unidentified, or claimed over another structure, is told by the
-body's shape where that is decisive (``_head_by_body``, :mod:`.head_by_body`); that and the body's other
-corrections of a reconstruction (an unresolved mirror ambiguity, an axis in an epipolar plane whose length is
+Where the robot's body is known, a head left unidentified, or claimed over another structure or by one view
+alone, is told by the body's shape where that is decisive (``_head_by_body``, :mod:`.head_by_body`); that and
+the body's other corrections of a reconstruction (an unresolved mirror ambiguity, an axis in an epipolar plane whose length is
 off the body's) are :mod:`.body_corrections`.
 A tracker given the robot's body (``body=``, with ``settings.body_prior``) places the centroid and tips
 of every ok posture by it (:func:`.body_prior.place_body`; on the plain frames' postures within the pair's

@@ -265,3 +265,28 @@ def test_a_rendered_robot_6_over_the_vessel(views: dict[str, object], calibratio
     off = PostureTracker(calibration, settings.model_copy(update={"body_prior": False}), body=spec)
     unaided = PostureTracker(calibration, settings).process(pair.images["p"], pair.images["q"])
     np.testing.assert_array_equal(off.process(pair.images["p"], pair.images["q"]).centroid_mm, unaided.centroid_mm)
+
+
+def test_robot_4_kept_tips_of_the_wrong_length_go_half_its_length_either_side(calibration: Calibration) -> None:
+    robot4 = BodyModel.of(load_robots()[4])
+    assert not robot4.length_mm - robot4.cone_length_mm >= robot4.diameter_mm   # no flat tail: no order evidence
+    c, u, head, tail = _truth(robot4, (1.0, -2.0, 3.0), (0.3, 0.8, -0.5))
+    # The apex measured as a flat end (its crossing short of it, in both views): the measured ends are kept
+    # (the order undecided, the head not identified) and their length is off the body's beyond their noise.
+    apex = head - 1.0 * u
+    posture = _posture(calibration, c, u, apex, tail, head_identified=False)
+    posture = dataclasses.replace(posture, length_mm=robot4.length_mm - 1.0)
+    kept = posture.tips_mm.copy()
+    placed = place_body(calibration, posture, robot4, SETTINGS)
+    assert placed.ambiguous and "is not the robot's" in placed.reason and not placed.head_identified
+    # The tips are the body's half length either side of the centroid (the measured one: on the axis planes
+    # already), not the measured ends.
+    half = 0.5 * robot4.length_mm
+    np.testing.assert_allclose(placed.tips_mm, [placed.centroid_mm + half * u, placed.centroid_mm - half * u],
+                               atol=1e-9)
+    np.testing.assert_allclose(placed.centroid_mm, posture.centroid_mm, atol=1e-6)
+    assert np.linalg.norm(placed.tips_mm[0] - kept[0]) > 0.1
+    # Where the measured length fits, the measured ends stay.
+    fits = place_body(calibration, _posture(calibration, c, u, head, tail, head_identified=False), robot4, SETTINGS)
+    assert not fits.ambiguous
+    np.testing.assert_array_equal(fits.tips_mm, _posture(calibration, c, u, head, tail, head_identified=False).tips_mm)
