@@ -99,7 +99,15 @@ def _prefixes():  # type: ignore[no-untyped-def]
                     ("            if status != roi_kernels.FOUND:\n",
                      "            if svstop < 99:\n                continue\n"
                      "            if status != roi_kernels.FOUND:\n"),
-                    ("        if not ok:\n", "        if stop < 0:\n            continue\n        if not ok:\n")],
+                    ("        if not ok:\n", "        if stop < 0:\n            continue\n        if not ok:\n"),
+                    # A tight ROI's prefix finds nothing: not the ROI's search after it too (it would count twice).
+                    ("        found, via = lean, ", "        tried = False\n        found, via = lean, "),
+                    ("                if ok:\n                    status, weights, mask = search_upto(",
+                     "                if ok:\n                    tried = True\n"
+                     "                    status, weights, mask = search_upto("),
+                    ("        if not found:\n            status, weights, mask = search_upto(",
+                     "        if not found and not (tried and (svstop < 99 or rstop < 99)):\n"
+                     "            status, weights, mask = search_upto(")],
                    PAIR_ANCHORS, "    if stop == {k}:\n        return PAIR_PER_VIEW, w_p, m_p, w_q, m_q\n",
                    {"search_upto": search})
 
