@@ -85,6 +85,21 @@ def _queued_ns() -> int:
         return 0
 
 
+def _switches() -> tuple[int, int]:
+    """The loop thread's (voluntary, involuntary) context switches so far (``/proc/self/task/TID/status``)."""
+    counts = [0, 0]
+    try:
+        with open(f"/proc/self/task/{_MAIN_TID}/status") as handle:
+            for line in handle:
+                if line.startswith("voluntary_ctxt_switches"):
+                    counts[0] = int(line.split()[1])
+                elif line.startswith("nonvoluntary_ctxt_switches"):
+                    counts[1] = int(line.split()[1])
+    except (OSError, ValueError):
+        pass
+    return counts[0], counts[1]
+
+
 def _snapshot() -> dict[int, int]:
     out = {}
     for ident in list(_threads()):
@@ -306,6 +321,7 @@ def stages(args: argparse.Namespace) -> int:
     gc_started: list[float] = []
     released: list[float] = [0.0]
     queued: list[int] = [0]
+    switches: list[tuple[int, int]] = [(0, 0)]
     rows: list[dict[str, Any]] = []
 
     def on_gc(phase: str, info: dict[str, Any]) -> None:
@@ -326,6 +342,7 @@ def stages(args: argparse.Namespace) -> int:
                                        calibration=sim.devices.calibration.to_dict(),
                                        frames_every=session.config.recording.frames_every)
             sim.orchestrator.listeners.append(RecordingListener(recorder))
+        main_ident = threading.get_ident()
         lab = getattr(sim.bench.lab, "process", None)
         child_clock = _process_cpu_clock(lab.pid) if lab is not None else None
         stream = sim.devices.frames
@@ -334,7 +351,10 @@ def stages(args: argparse.Namespace) -> int:
 
             def to_frame(assembled: Any, host_time: float, original: Any = original_to_frame) -> Any:
                 frame = original(assembled, host_time)
-                frame_marks[(frame.plane, frame.number)] = {"stamp": host_time, "handed": mono()}
+                # The loop thread's CPU clock (~1 us, read from this reader): where the window opens.
+                frame_marks[(frame.plane, frame.number)] = {"stamp": host_time, "handed": mono(),
+                                                            "loop_cpu": _cpu_ns(main_ident) or 0,
+                                                            "queued": _queued_ns(), "switches": _switches()}
                 return frame
 
             def read(timeout_s: float, original: Any = original_read) -> Any:
@@ -369,6 +389,7 @@ def stages(args: argparse.Namespace) -> int:
         def timed_release() -> None:
             # The loop thread's run-queue wait so far: read before the window opens (the frames are not out).
             queued[0] = _queued_ns()
+            switches[0] = _switches()
             release()
             released[0] = mono()
 
@@ -379,7 +400,8 @@ def stages(args: argparse.Namespace) -> int:
         def timed_next_pair(timeout_s: float) -> Any:
             pair = next_pair(timeout_s)
             current.clear()
-            current.update(pair=pair, got=mono(), child_got=_clock_ns(child_clock), released=released[0])
+            current.update(pair=pair, got=mono(), child_got=_clock_ns(child_clock), released=released[0],
+                           switches_released=switches[0])
             return pair
 
         def _others() -> dict[int, int]:
@@ -393,7 +415,6 @@ def stages(args: argparse.Namespace) -> int:
             return out
 
         frames.next_pair = timed_next_pair
-        main_ident = threading.get_ident()
         port = sim.devices.amplifier._port
         write = port.write
 
@@ -409,8 +430,11 @@ def stages(args: argparse.Namespace) -> int:
             # The first read after the command's write (for its reply): the window has closed and the driver has
             # taken its "written" time, so these readings are not in the latency.
             if threading.get_ident() == main_ident and "written" in current and "queued" not in current:
+                current["loop_cpu_written"] = time.thread_time_ns()
+                current["switches_written"] = _switches()
                 current["child_written"] = _clock_ns(child_clock)
-                current["queued"] = _queued_ns() - queued[0]
+                current["queued_written"] = _queued_ns()
+                current["queued"] = current["queued_written"] - queued[0]
                 current["threads_written"] = _others()
             return read_port(size)
 
@@ -442,9 +466,14 @@ def stages(args: argparse.Namespace) -> int:
                    "since_release": (m["stamp"] - current["released"]) * 1e3,
                    "child_cpu": (current["child_written"] - current["child_got"]) / 1e6,
                    "runq": current["queued"] / 1e6,
+                   "loop_cpu": (current["loop_cpu_written"] - m["loop_cpu"]) / 1e6,
+                   "runq_window": (current["queued_written"] - m["queued"]) / 1e6,
+                   "voluntary": current["switches_written"][0] - m["switches"][0],
+                   "preempted": current["switches_written"][1] - m["switches"][1],
                    "threads": {ident: (ns - start_threads[ident]) / 1e6
                                for ident, ns in current["threads_written"].items() if ident in start_threads},
                    "window": (m["stamp"], current["written"])}
+            row["asleep"] = row["latency"] - row["loop_cpu"] - row["runq_window"]
             rows.append(row)
 
         gc.callbacks.append(on_gc)
@@ -472,7 +501,11 @@ def stages(args: argparse.Namespace) -> int:
         values = [r[key] for r in rows]
         print(f"  {label:<36} {_pct(values, 50):7.3f} {_pct(values, 99):7.3f} {max(values, default=math.nan):7.3f}")
     for label, key in (("p/q stamps apart", "skew"), ("lab child CPU, got -> written", "child_cpu"),
-                       ("loop thread on a run queue", "runq"), ("gc inside the window", "gc")):
+                       ("loop thread on a run queue", "runq"), ("loop thread CPU in the window", "loop_cpu"),
+                       ("loop thread on a run queue in it", "runq_window"),
+                       ("loop thread asleep (window-CPU-runq)", "asleep"),
+                       ("loop's voluntary switches", "voluntary"), ("loop's preemptions", "preempted"),
+                       ("gc inside the window", "gc")):
         values = [r[key] for r in rows]
         print(f"  ({label:<34} {_pct(values, 50):7.3f} {_pct(values, 99):7.3f} {max(values, default=math.nan):7.3f})")
     worst = sorted(rows, key=lambda r: r["latency"])[-max(1, len(rows) // 50):]
@@ -491,10 +524,11 @@ def stages(args: argparse.Namespace) -> int:
         busiest = max(r["threads"].items(), key=lambda kv: kv[1], default=(None, 0.0))
         r["busiest"] = (label.get(busiest[0], "-") if busiest[0] is not None else "-", busiest[1])
     print(f"\nworst {len(worst)} steps (ms): " + " ".join(f"{k[:6]:>6}" for _, k in _STAGES)
-          + "  last   gc  child   runq  since-release  busiest other thread")
+          + "  last   gc  child   runq loopcpu  inwin asleep vol/inv  since-release  busiest other thread")
     for r in reversed(worst):
         print(f"  #{r['index']:<5} {r['latency']:6.2f} " + " ".join(f"{r[k]:6.2f}" for _, k in _STAGES)
-              + f"  {r['last']:>4} {r['gc']:5.2f} {r['child_cpu']:6.2f} {r['runq']:6.2f} {r['since_release']:6.2f}"
+              + f"  {r['last']:>4} {r['gc']:5.2f} {r['child_cpu']:6.2f} {r['runq']:6.2f} {r['loop_cpu']:7.2f}"
+              + f" {r['runq_window']:6.2f} {r['asleep']:6.2f} {r['voluntary']:3d}/{r['preempted']:<3d} {r['since_release']:6.2f}"
               + f"         {r['busiest'][0]} {r['busiest'][1]:.2f}")
     return 0
 
