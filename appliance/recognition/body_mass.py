@@ -30,16 +30,18 @@ def pixel_scales_mm(calibration: Calibration, point_mm: np.ndarray) -> dict[str,
             for name, view in calibration.views.items()}
 
 
-def view_masses_mm2(calibration: Calibration, blobs: dict[str, Blob], point_mm: np.ndarray | None = None
-                    ) -> dict[str, float]:
+def view_masses_mm2(calibration: Calibration, blobs: dict[str, Blob], point_mm: np.ndarray | None = None,
+                    scales: dict[str, float] | None = None) -> dict[str, float]:
     """Per view, the blob's strength times the pixel's area at ``point_mm`` (default: the blobs' centroids
-    triangulated); NaN for every view where that point is not finite."""
-    if point_mm is None:
-        point_mm = triangulate(calibration.p, calibration.q, blobs["p"].centroid_px, blobs["q"].centroid_px,
-                               optimal=False)[0]
-    if not np.all(np.isfinite(point_mm)):
-        return {name: math.nan for name in blobs}
-    scales = pixel_scales_mm(calibration, point_mm)
+    triangulated); NaN for every view where that point is not finite. ``scales``: the caller's
+    :func:`pixel_scales_mm` at that point, where it has them already."""
+    if scales is None:
+        if point_mm is None:
+            point_mm = triangulate(calibration.p, calibration.q, blobs["p"].centroid_px, blobs["q"].centroid_px,
+                                   optimal=False)[0]
+        if not np.all(np.isfinite(point_mm)):
+            return {name: math.nan for name in blobs}
+        scales = pixel_scales_mm(calibration, point_mm)
     return {name: blob.strength * scales[name] ** 2 for name, blob in blobs.items()}
 
 

@@ -442,7 +442,7 @@ class PostureTracker:
             return 0.0, 0.0
         scales = pixel_scales_mm(self.calibration, X)
         widths = [blob.width_px * scales[name] for name, blob in blobs.items()]
-        strengths = list(view_masses_mm2(self.calibration, blobs, X).values())
+        strengths = list(view_masses_mm2(self.calibration, blobs, scales=scales).values())
         return (abs(math.log(max(widths[0], 1e-6) / max(widths[1], 1e-6))),
                 abs(math.log(max(strengths[0], 1e-12) / max(strengths[1], 1e-12))))
 
