@@ -71,7 +71,22 @@ def _not_plain(steady: Any) -> str:
         return "the kernel's finish: not plain"
     if steady._body and (placed != 1.0 or flag != 0.0):
         return f"the body: placed {placed:g}, flag {flag:g}"
-    return "a check in Python (axis uncertainty, epipolar or tips band)"
+    import math
+
+    from appliance.recognition.features import clutter_axis_sigma_rad
+
+    for view, at in (("p", 0), ("q", 10)):
+        peak, strength, clutter, count, _cu, _cv, l1, l2, axis, kernel_axis = v[at:at + 10]
+        python_axis = math.hypot(axis, clutter_axis_sigma_rad(clutter, int(count), peak, strength, l1, l2)
+                                 if clutter > 0.0 else 0.0)
+        if kernel_axis != python_axis:
+            return f"view {view}'s compiled axis uncertainty is not Python's (clutter {clutter > 0.0})"
+    rms_a, rms_b, _angle, epipolar, sigma = v[20:25]
+    if math.degrees(sigma) > steady._max_axis_sigma_deg:
+        return "axis sigma over the limit"
+    if epipolar > steady._epipolar_band_px:
+        return "centroids' epipolar band"
+    return "tips' epipolar band"
 
 
 def _plain_probe(current: dict[str, Any], steady: Any) -> None:
@@ -93,6 +108,7 @@ def main() -> int:
     parser.add_argument("--seconds", type=float, default=20.0)
     parser.add_argument("--cprofile", action="store_true", help="cProfile over the window instead of the pieces")
     parser.add_argument("--top", type=int, default=40)
+    parser.add_argument("--dump", type=Path, default=None, help="with --cprofile: the profile's stats into this file")
     parser.add_argument("--kernel", action="store_true",
                         help="also the steady kernel's own CPU in the loop, its minor page faults, and the same call "
                              "repeated at once after the step (hot caches), for the cause of the tail")
@@ -215,6 +231,8 @@ def main() -> int:
           f"load {os.getloadavg()[0]:.2f}")
     if profiler is not None:
         stats = pstats.Stats(profiler)
+        if args.dump is not None:
+            stats.dump_stats(args.dump)
         n = max(len(rows), 1)
         entries = sorted(stats.stats.items(), key=lambda kv: -kv[1][2])  # type: ignore[attr-defined]
         print(f"cProfile over the window, per step: own us, cumulative us, calls  ({n} steps)")
