@@ -108,6 +108,8 @@ def main() -> int:
     parser.add_argument("--seconds", type=float, default=20.0)
     parser.add_argument("--cprofile", action="store_true", help="cProfile over the window instead of the pieces")
     parser.add_argument("--top", type=int, default=40)
+    parser.add_argument("--commands", type=Path, default=None,
+                        help="the steps' commanded currents and fields into this .npz (to compare two builds' outputs)")
     parser.add_argument("--dump", type=Path, default=None, help="with --cprofile: the profile's stats into this file")
     parser.add_argument("--kernel", action="store_true",
                         help="also the steady kernel's own CPU in the loop, its minor page faults, and the same call "
@@ -227,6 +229,11 @@ def main() -> int:
             _kernel_probe(current)
             _plain_probe(current, orchestrator.tracker._pair)
         result = sim.run(args.seconds, on_step=on_step)
+    if args.commands is not None:
+        kept = [r for r in result.reports if r.frame is not None]
+        np.savez(args.commands, frame=np.array([r.frame for r in kept]),
+                 commanded_a=np.array([r.commanded_a for r in kept]), field_T=np.array([r.field_T for r in kept]),
+                 force_N=np.array([r.force_N for r in kept]), mode=np.array([r.mode for r in kept]))
     print(f"appliance sim, {args.seconds:g} s simulated, {len(result.reports)} steps, {len(rows)} measured; "
           f"load {os.getloadavg()[0]:.2f}")
     if profiler is not None:
