@@ -46,6 +46,18 @@ _PIECES = ("wake-up", "recognition", "plausible", "follower", "safety", "allocat
 _search_pair = steady_kernels.search_pair
 
 
+def _stamping(to_frame: Any, stamps: dict[tuple[str, int], int], loop_clock: int) -> Any:
+    """A grabber driver's ``_to_frame`` that also keeps the loop thread's CPU clock at the frame's stamp."""
+
+    def stamped(assembled: Any, host_time: float) -> Any:
+        frame = to_frame(assembled, host_time)
+        stamps[(frame.plane, frame.number)] = time.clock_gettime_ns(loop_clock)
+        while len(stamps) > 64:
+            del stamps[next(iter(stamps))]
+        return frame
+    return stamped
+
+
 def _kernel_probe(current: dict[str, Any]) -> None:
     """The steady kernel wrapped: its loop-thread CPU and minor faults into ``current``, its arguments kept."""
 
@@ -130,16 +142,7 @@ def main() -> int:
     with Simulation(session) as sim:
         orchestrator = sim.orchestrator
         for source in sim.devices.frames.sources.values():
-            original = source._to_frame
-
-            def to_frame(assembled: Any, host_time: float, original: Any = original) -> Any:
-                frame = original(assembled, host_time)
-                stamps[(frame.plane, frame.number)] = time.clock_gettime_ns(loop_clock)
-                if len(stamps) > 64:
-                    stamps.pop(next(iter(stamps)))
-                return frame
-
-            source._to_frame = to_frame
+            source._to_frame = _stamping(source._to_frame, stamps, loop_clock)
         frames = sim.frames
         next_pair = frames.next_pair
 
