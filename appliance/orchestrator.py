@@ -97,6 +97,16 @@ def collect_and_freeze_session() -> None:
     gc.freeze()
 
 
+#: The allocation's position before the first tracked frame.
+_ORIGIN = (0.0, 0.0, 0.0)
+
+
+def _xyz(vector: np.ndarray) -> tuple[float, float, float]:
+    """A 3-vector as a tuple of Python floats (one numpy call)."""
+    x, y, z = vector.tolist()
+    return x, y, z
+
+
 def _sample_record(sample: ToolSample) -> dict[str, Any]:
     return {"handle": sample.handle, "rom": sample.rom, "frame": sample.frame, "missing": sample.missing,
             "position_mm": list(sample.position_mm) if sample.position_mm is not None else None,
@@ -126,9 +136,9 @@ class Orchestrator:
         self.shutdown_safe: bool | None = None
         self._n = allocator.model.n
         self._commanded = np.zeros(self._n)
-        self._position: np.ndarray | None = None
+        self._position: tuple[float, float, float] | None = None   # the last accepted centroid (mm)
         self._moment_dir: tuple[float, float, float] | None = None
-        self._last_tracked: tuple[float, np.ndarray] | None = None
+        self._last_tracked: tuple[float, tuple[float, float, float]] | None = None
         self._last_pair_t = 0.0
         self._ots_frame = -1
         self._stop_request: str | None = None
@@ -271,14 +281,21 @@ class Orchestrator:
         mark = time.perf_counter()
         posture = None
         tracked = False
+        xyz: tuple[float, float, float] | None = None
+        jump: float | None = None
         if pair is not None:
             posture = self.tracker.process(pair.p.image, pair.q.image, frame=pair.number, t=now)
             tracked = posture.ok and posture.centroid_mm is not None
-            if tracked and not self._plausible(posture.centroid_mm, now):
-                # A robot cannot jump: a far-off "robot" is something else (a contrast-filled vessel
-                # when the real one left the images). Treated as lost, so the supervisor holds and zeroes.
-                tracked = False
-                self.stats.rejected += 1
+            if tracked:
+                # The centroid as plain floats, once: the gate, the speed and the allocation's position take
+                # them without a numpy call (each costs the loop 10-20 us after recognition, issue 8).
+                xyz = _xyz(posture.centroid_mm)
+                jump = self._jump_mm(xyz)
+                if not self._plausible(jump, now):
+                    # A robot cannot jump: a far-off "robot" is something else (a contrast-filled vessel
+                    # when the real one left the images). Treated as lost, so the supervisor holds and zeroes.
+                    tracked = False
+                    self.stats.rejected += 1
             self.stats.tracked += tracked
             self.stats.lost += not tracked
         stages["recognition"] = (time.perf_counter() - mark) * 1e6
@@ -286,16 +303,15 @@ class Orchestrator:
         mark = time.perf_counter()
         command, speed = None, None
         if tracked:
-            assert posture is not None and posture.centroid_mm is not None
+            assert posture is not None and posture.centroid_mm is not None and xyz is not None
             centroid = posture.centroid_mm
             axis = posture.direction if posture.direction is not None else self._moment_dir
             if axis is None:
                 axis = self.follower.tangent_at(self.follower.nearest(centroid)[0])
-            if self._last_tracked is not None and now > self._last_tracked[0]:
-                step = centroid - self._last_tracked[1]
-                speed = math.sqrt(float(step @ step)) / (now - self._last_tracked[0])
-            self._last_tracked = (now, centroid.copy())
-            self._position = centroid.copy()
+            if jump is not None and self._last_tracked is not None and now > self._last_tracked[0]:
+                speed = jump / (now - self._last_tracked[0])
+            self._last_tracked = (now, xyz)
+            self._position = xyz
             command = self.follower.command(centroid, axis, now)
         decision = self.safety.update(now, tracked, command.field_T if command else None,
                                       command.force_N if command else None, speed)
@@ -307,13 +323,13 @@ class Orchestrator:
         mark = time.perf_counter()
         # The robot's moment lies along the requested field (it aligns within microseconds); with no
         # field, along the last one. Plain floats here, the normalisation inside the allocation kernel.
-        fx, fy, fz = decision.field_T.tolist()
+        field = fx, fy, fz = decision.field_T.tolist()
         field_norm = math.sqrt(fx * fx + fy * fy + fz * fz)
         if field_norm > 0.0:
             self._moment_dir = (fx / field_norm, fy / field_norm, fz / field_norm)
-        position = self._position if self._position is not None else np.zeros(3)
         allocation = self.allocator.allocate_aligned(
-            position, decision.field_T, decision.force_N, self.moment_am2, self._commanded, 1.0 / self.settings.fps,
+            self._position if self._position is not None else _ORIGIN, field, decision.force_N.tolist(),
+            self.moment_am2, self._commanded, 1.0 / self.settings.fps,
             zero_field_direction=self._moment_dir if self._moment_dir is not None else (0.0, 0.0, 1.0))
         stages["allocation"] = (time.perf_counter() - mark) * 1e6
 
@@ -395,14 +411,22 @@ class Orchestrator:
         except ApplianceError as err:   # a grabber vanished, a link broke, a source ended
             return None, f"X-ray frames: {err}"
 
-    def _plausible(self, centroid: np.ndarray, now: float) -> bool:
-        """Whether ``centroid`` is reachable from the last accepted one at the supervisor's speed limit (plus
-        ``JUMP_MARGIN_MM`` for recognition noise); the gate widens the longer the robot was not seen."""
+    def _jump_mm(self, xyz: tuple[float, float, float]) -> float | None:
+        """The distance (mm) from the last accepted centroid to ``xyz``; None before the first."""
         if self._last_tracked is None:
+            return None
+        x, y, z = self._last_tracked[1]
+        dx, dy, dz = xyz[0] - x, xyz[1] - y, xyz[2] - z
+        return math.sqrt(dx * dx + dy * dy + dz * dz)
+
+    def _plausible(self, jump: float | None, now: float) -> bool:
+        """Whether a centroid ``jump`` mm from the last accepted one (:meth:`_jump_mm`; None: there is none)
+        is reachable at the supervisor's speed limit (plus ``JUMP_MARGIN_MM`` for recognition noise); the gate
+        widens the longer the robot was not seen. A NaN jump (a non-finite centroid) is not."""
+        if jump is None:
             return True
-        t_last, last = self._last_tracked
+        t_last = self._last_tracked[0] if self._last_tracked is not None else now
         reach = self.safety.settings.max_robot_speed_mm_s * max(now - t_last, 0.0) + JUMP_MARGIN_MM
-        jump = float(np.linalg.norm(centroid - last))
         if jump <= reach:
             return True
         log.info("posture rejected: %.1f mm from the last one in %.3f s (reach %.1f mm)", jump, now - t_last, reach)

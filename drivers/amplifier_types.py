@@ -200,20 +200,26 @@ def limit_currents(requested_a: np.ndarray, previous_a: np.ndarray, dt_s: float,
 def limit_current_list(requested_a: list[float], previous_a: list[float], dt_s: float,
                        limits: AmplifierLimits) -> tuple[list[float], float, float]:
     """:func:`limit_currents` on plain float lists: what the driver runs on every command (8 channels of
-    float arithmetic cost ~3 us; the same on numpy arrays, a dozen calls of ~2 us each)."""
+    float arithmetic cost ~3 us; the same on numpy arrays, a dozen calls of ~2 us each). Comparisons in
+    place of ``abs``/``min``/``max`` calls on every channel (the same results, to the bit, as those calls:
+    only a channel over its limit pays one)."""
     max_a, slew = limits.max_current_a, limits.slew_a_per_s
     current_scale = 1.0
     for value, limit in zip(requested_a, max_a):
-        if abs(value) > limit:
+        if value > limit or -value > limit:   # abs(value) > limit
             current_scale = min(current_scale, limit / abs(value))
-    target = [value * current_scale for value in requested_a] if current_scale < 1.0 else list(requested_a)
+    target = [value * current_scale for value in requested_a] if current_scale < 1.0 else requested_a
     step = [t - p for t, p in zip(target, previous_a)]
-    dt = max(dt_s, 0.0)
+    dt = 0.0 if 0.0 > dt_s else dt_s   # max(dt_s, 0.0)
     slew_scale = 1.0
     for delta, rate in zip(step, slew):
         allowed = rate * dt
-        if abs(delta) > allowed:
+        if delta > allowed or -delta > allowed:   # abs(delta) > allowed
             slew_scale = min(slew_scale, allowed / abs(delta))
-    # Guard against rounding pushing a channel a hair over its limit.
-    commanded = [min(max(p + d * slew_scale, -m), m) for p, d, m in zip(previous_a, step, max_a)]
+    # Guard against rounding pushing a channel a hair over its limit: min(max(value, -m), m), as comparisons.
+    commanded = []
+    for p, d, m in zip(previous_a, step, max_a):
+        value = p + d * slew_scale
+        value = -m if -m > value else value
+        commanded.append(m if m < value else value)
     return commanded, current_scale, slew_scale

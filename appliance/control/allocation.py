@@ -87,6 +87,10 @@ class CurrentAllocator:
         self.resistance_ohm = model.resistance_ohm
         self.rcond = rcond
         self._limits = np.vstack([self.max_current_a, self.max_slew_a_per_s, self.resistance_ohm])
+        #: allocate_aligned's request (position, field, force, zero-field direction), rewritten every call
+        #: through a memoryview: the kernel only reads it and nothing keeps it.
+        self._aligned_request = np.zeros(12)
+        self._aligned_stores = memoryview(self._aligned_request)
 
     def matrices(self, position_mm: ArrayLike, moment_am2: ArrayLike) -> tuple[FloatArray, FloatArray]:
         """(3 x n field per ampere, 3 x n force per ampere) at ``position_mm`` for ``moment_am2``."""
@@ -124,11 +128,26 @@ class CurrentAllocator:
 
         The same as ``allocate(position_mm, field_T, force_N, moment_am2 * field_T / |field_T|, ...)``, with
         the normalisation inside the kernel: the loop's three numpy calls on three numbers cost it
-        10-20 us each after a frame's recognition has cycled the caches (issue 8).
+        10-20 us each after a frame's recognition has cycled the caches (issue 8). Plain floats (tuples,
+        lists) are stored into a request array kept for the purpose, without a numpy call; anything
+        that is not three values each goes through ``np.concatenate``. Not thread-safe (the loop's).
         """
-        request = np.concatenate((position_mm, field_T, force_N, zero_field_direction), axis=None, dtype=np.float64)
-        if request.size != 12:
-            raise ValueError(f"position, field, force and direction need 3 values each, got {request.size} in all")
+        request = self._aligned_request
+        stores = self._aligned_stores
+        try:
+            # Three values each into the request kept for this call, a float per store (the loop passes tuples
+            # of floats: no numpy call at all; an array's three values unpack as numpy floats).
+            stores[0], stores[1], stores[2] = position_mm
+            stores[3], stores[4], stores[5] = field_T
+            stores[6], stores[7], stores[8] = force_N
+            stores[9], stores[10], stores[11] = zero_field_direction
+        except (TypeError, ValueError):
+            # Not three plain values each (another shape, a nested sequence): numpy's flattening decides.
+            request = np.concatenate((position_mm, field_T, force_N, zero_field_direction), axis=None,
+                                     dtype=np.float64)
+            if request.size != 12:
+                raise ValueError(
+                    f"position, field, force and direction need 3 values each, got {request.size} in all") from None
         if not math.isfinite(moment_am2):
             raise ValueError(f"moment_am2 must be finite, got {moment_am2}")
         return self._allocate(request, True, float(moment_am2), previous_a, dt_s)

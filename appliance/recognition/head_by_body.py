@@ -32,6 +32,7 @@ import math
 
 import numpy as np
 
+from appliance.compiled import register_warm_up
 from appliance.geometry import Calibration
 from appliance.recognition import body_kernels as bk
 from appliance.recognition.body_prior import BodyModel
@@ -100,3 +101,15 @@ def chi2_of(rows: list[tuple[float, float, float]], cap: float) -> float:
     mean = sum(w * b for w, (b, _, _) in zip(weights, rows)) / sum(weights)
     return min(sum(min(w * (b - place) ** 2, cap * cap) for w, (b, _, _) in zip(weights, rows))
                for place in [mean] + [b for b, _, _ in rows])
+
+
+def warm_up() -> None:
+    """Compile :func:`.body_kernels._end_sigma_mm` for the call :func:`axial_rows` makes from Python (a head flag,
+    five floats). The kernels that call it inline it, so their warm-ups leave it without a Python signature,
+    and the first frame that weighs a head by the body would load it (~10 ms from the cache, seconds cold)
+    inside the loop's window."""
+    for is_head in (True, False):
+        bk._end_sigma_mm(is_head, 1.0, 0.5, 0.05, math.sqrt(0.5), 1.0)
+
+
+register_warm_up(__name__)

@@ -189,3 +189,48 @@ def test_start_up_refuses_frames_that_do_not_fit_the_calibration(tmp_path: Path)
 def test_loop_settings_come_from_the_session() -> None:
     settings = LoopSettings.from_config(small_session(loop={"frame_timeout_ms": 400}).config)
     assert settings.fps == 30.0 and settings.frame_timeout_s == 0.4 and settings.pair_timeout_s == 0.15
+
+
+def test_a_posture_out_of_the_robots_reach_is_rejected_as_lost_and_the_speed_is_the_accepted_steps() -> None:
+    """The jump gate: a recognised centroid farther from the last accepted one than the robot can go at the
+    speed limit (plus the margin) is lost, as is a non-finite one; the supervisor sees the speed between
+    accepted centroids (distance over time), and the gate measures from the last accepted centroid."""
+    with Simulation(small_session()) as sim:
+        orchestrator = sim.orchestrator
+        process, update = orchestrator.tracker.process, orchestrator.safety.update
+        moved: dict[int, np.ndarray] = {}
+        speeds: list[tuple[int, float | None]] = []
+        steps = [0]
+
+        def shifted(*args: Any, **kwargs: Any) -> Any:
+            posture = process(*args, **kwargs)
+            if orchestrator.running:
+                steps[0] += 1
+                offset = {6: np.array([0.0, 40.0, 0.0]), 9: np.array([np.nan, 0.0, 0.0])}.get(steps[0])
+                if offset is not None and posture.centroid_mm is not None:
+                    posture.centroid_mm = posture.centroid_mm + offset
+                if posture.centroid_mm is not None:
+                    moved[steps[0]] = np.array(posture.centroid_mm)
+            return posture
+
+        def watched(t_s: float, tracked: bool, *args: Any) -> Any:
+            speeds.append((steps[0], args[2] if len(args) > 2 else None))
+            return update(t_s, tracked, *args)
+
+        orchestrator.tracker.process, orchestrator.safety.update = shifted, watched
+        result = sim.run(0.5)
+    by_step = {k + 1: report for k, report in enumerate(result.reports)}
+    assert len(by_step) >= 12 and all(by_step[k].posture is not None and by_step[k].posture["ok"] for k in by_step)
+    rejected = {k for k, report in by_step.items() if not report.tracked}
+    assert rejected == {6, 9}
+    assert orchestrator.stats.rejected == 2
+    times = {k: report.t_s for k, report in by_step.items()}
+    checked = 0
+    for k, speed in speeds:
+        if k in rejected or k - 1 not in moved or k == 1:
+            continue
+        last = k - 1 if k - 1 not in rejected else k - 2    # the gate and the speed start at the last accepted
+        expected = float(np.linalg.norm(moved[k] - moved[last])) / (times[k] - times[last])
+        assert speed == pytest.approx(expected, rel=1e-12)
+        checked += 1
+    assert checked >= len(by_step) - 5

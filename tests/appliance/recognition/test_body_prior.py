@@ -290,3 +290,18 @@ def test_robot_4_kept_tips_of_the_wrong_length_go_half_its_length_either_side(ca
     fits = place_body(calibration, _posture(calibration, c, u, head, tail, head_identified=False), robot4, SETTINGS)
     assert not fits.ambiguous
     np.testing.assert_array_equal(fits.tips_mm, _posture(calibration, c, u, head, tail, head_identified=False).tips_mm)
+
+
+def test_the_warm_up_compiles_the_end_sigma_for_the_head_by_body_call(robot6: BodyModel) -> None:
+    """head_by_body.axial_rows calls the body kernels' end sigma from Python (the kernels that use it inline
+    it): the warm-ups must have compiled that call, or the first frame that weighs a head by the body loads
+    it inside the loop (~10 ms seen in appliance sim's window)."""
+    from appliance.compiled import warm_up_all
+    from appliance.recognition import body_kernels as bk
+
+    warm_up_all()
+    compiled = len(bk._end_sigma_mm.signatures)
+    assert compiled >= 1
+    for is_head in (True, False):   # the argument types axial_rows passes: a flag, the body's floats, floats
+        bk._end_sigma_mm(is_head, robot6.cone_length_mm, robot6.diameter_mm, 0.05, float(np.sqrt(0.3)), 1.0)
+    assert len(bk._end_sigma_mm.signatures) == compiled
