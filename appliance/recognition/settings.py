@@ -251,6 +251,9 @@ class RecognitionSettings(StrictModel):
     #: vessel that did not slide up to ~1.03.
     max_mass_excess: float = Field(0.04, gt=0)
     max_mass_deficit: float = Field(0.08, gt=0, lt=1)
+    #: What a heavy view does: ``"slide"`` the sigma above and the flag, ``"flag"`` the flag only (the moment
+    #: centroid keeps its sigma), ``"off"`` nothing (the views are not weighed).
+    mass_rule: Literal["slide", "flag", "off"] = "slide"
 
     # -- tracking -----------------------------------------------------------------------------------
     #: Margin (px) of the region of interest around the predicted robot image.
