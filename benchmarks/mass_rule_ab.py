@@ -55,7 +55,8 @@ def main(argv: list[str] | None = None) -> int:
     robots = load_robots()
     views = biplane_views()
     calibration = acc.true_calibration(views)
-    phantom = VesselPhantom(smooth_centreline(S_BEND_CENTRELINE_MM), acc.VESSEL_RADIUS_MM, acc.VESSEL_ATTENUATION_PER_MM)
+    phantom = VesselPhantom(smooth_centreline(S_BEND_CENTRELINE_MM), acc.VESSEL_RADIUS_MM,
+                            acc.VESSEL_ATTENUATION_PER_MM)
     imaging = ImagingSettings()
     variants = {rule: {"mass_rule": rule} for rule in RULES}
     out: dict[str, Any] = {}
