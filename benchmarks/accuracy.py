@@ -78,6 +78,14 @@ def true_calibration(views: dict[str, Any]) -> Calibration:
                                     (("p", views["p"]), ("q", views["q"]))))
 
 
+def benchmark_scene() -> tuple[Any, dict[str, Any], Calibration, VesselPhantom, ImagingSettings]:
+    """The robots, the default views, their true calibration, the vessel phantom and the imaging settings, as
+    :func:`main` renders the frames (with the vessel)."""
+    views = biplane_views()
+    phantom = VesselPhantom(smooth_centreline(S_BEND_CENTRELINE_MM), VESSEL_RADIUS_MM, VESSEL_ATTENUATION_PER_MM)
+    return load_robots(), views, true_calibration(views), phantom, ImagingSettings()
+
+
 def random_poses(rng: np.random.Generator, n: int) -> list[RobotPose]:
     poses = []
     for _ in range(n):

@@ -38,9 +38,7 @@ if str(ROOT) not in sys.path:
 import benchmarks.accuracy as acc  # noqa: E402
 from appliance.recognition import PostureTracker, RecognitionSettings  # noqa: E402
 from appliance.recognition import body_kernels as bk  # noqa: E402
-from appliance.robots import load_robots  # noqa: E402
-from drivers.loopback.scene_builders import S_BEND_CENTRELINE_MM, smooth_centreline  # noqa: E402
-from drivers.loopback.xray_render import BiplaneRenderer, ImagingSettings, RobotBody, VesselPhantom, biplane_views  # noqa: E402,E501
+from drivers.loopback.xray_render import BiplaneRenderer, RobotBody  # noqa: E402
 
 GATED = bk.AXIS_PLANES_MAX_SIGMA_RAD
 BINS_DEG = (0.0, 1.0, 1.5, 2.0, 2.5, 3.0, 4.0, 6.0, 10.0, 180.0)
@@ -65,12 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     gates = {"gated": GATED, "always": math.radians(args.gate_deg)}
     bk.place = _place_py   # (body_prior calls bk.place; the Python place calls the module's _onto_axis_planes)
     bk._onto_axis_planes = bk._onto_axis_planes.py_func
-    robots = load_robots()
-    views = biplane_views()
-    calibration = acc.true_calibration(views)
-    phantom = VesselPhantom(smooth_centreline(S_BEND_CENTRELINE_MM), acc.VESSEL_RADIUS_MM,
-                            acc.VESSEL_ATTENUATION_PER_MM)
-    imaging = ImagingSettings()
+    robots, views, calibration, phantom, imaging = acc.benchmark_scene()
     rows: list[dict[str, Any]] = []
     for seed in (int(s) for s in args.seeds.split(",")):
         for robot_id in (int(r) for r in args.robots.split(",")):

@@ -23,9 +23,6 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 import benchmarks.accuracy as acc  # noqa: E402
-from appliance.robots import load_robots  # noqa: E402
-from drivers.loopback.scene_builders import S_BEND_CENTRELINE_MM, smooth_centreline  # noqa: E402
-from drivers.loopback.xray_render import ImagingSettings, VesselPhantom, biplane_views  # noqa: E402
 
 RULES = ("slide", "flag", "off")
 
@@ -52,12 +49,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--tracked", action="store_true")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args(argv)
-    robots = load_robots()
-    views = biplane_views()
-    calibration = acc.true_calibration(views)
-    phantom = VesselPhantom(smooth_centreline(S_BEND_CENTRELINE_MM), acc.VESSEL_RADIUS_MM,
-                            acc.VESSEL_ATTENUATION_PER_MM)
-    imaging = ImagingSettings()
+    robots, views, calibration, phantom, imaging = acc.benchmark_scene()
     variants = {rule: {"mass_rule": rule} for rule in RULES}
     out: dict[str, Any] = {}
     for seed in (int(s) for s in args.seeds.split(",")):
