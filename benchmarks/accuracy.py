@@ -78,6 +78,14 @@ def true_calibration(views: dict[str, Any]) -> Calibration:
                                     (("p", views["p"]), ("q", views["q"]))))
 
 
+def benchmark_scene() -> tuple[Any, dict[str, Any], Calibration, VesselPhantom, ImagingSettings]:
+    """The robots, the default views, their true calibration, the vessel phantom and the imaging settings, as
+    :func:`main` renders the frames (with the vessel)."""
+    views = biplane_views()
+    phantom = VesselPhantom(smooth_centreline(S_BEND_CENTRELINE_MM), VESSEL_RADIUS_MM, VESSEL_ATTENUATION_PER_MM)
+    return load_robots(), views, true_calibration(views), phantom, ImagingSettings()
+
+
 def random_poses(rng: np.random.Generator, n: int) -> list[RobotPose]:
     poses = []
     for _ in range(n):
@@ -139,8 +147,11 @@ def summarise(scores: list[dict[str, Any]]) -> dict[str, Any]:
 
 def run_robot(robot_id: int, spec: Any, poses: list[RobotPose], seed: int, calibration: Calibration,
               views: dict[str, Any], phantom: VesselPhantom, imaging: ImagingSettings, tracked: bool = False,
-              body_prior: bool = True, history: int = 1) -> tuple[dict[str, list[dict[str, Any]]], float]:
+              body_prior: bool = True, history: int = 1, variants: dict[str, dict[str, Any]] | None = None
+              ) -> tuple[dict[str, list[dict[str, Any]]], float]:
     """Per estimator, the scores of every pose, and the seconds spent recognising the measured frames.
+    ``variants``: instead of the estimators, trackers by name with these settings (beyond ``dark_level`` and
+    ``body_prior``), all seeing the same frames.
 
     With ``tracked``, each pose is preceded by a frame of the robot one step back (``TRACK_STEP_MM``
     along a random direction, one frame period earlier), so the measured frame is recognised by the
@@ -153,10 +164,12 @@ def run_robot(robot_id: int, spec: Any, poses: list[RobotPose], seed: int, calib
     # The detector's offset is known on a bench from its dark-frame calibration; here from the simulator.
     # The trackers know the robot, as the appliance's always do (its body places the centroid and tips
     # unless ``body_prior`` is off: the model-free pipeline).
-    trackers = {name: PostureTracker(calibration, RecognitionSettings(estimator=name, dark_level=imaging.dark_level,
-                                                                      body_prior=body_prior), body=spec)
-                for name in ESTIMATORS}
-    scores: dict[str, list[dict[str, Any]]] = {name: [] for name in ESTIMATORS}
+    if variants is None:
+        variants = {name: {"estimator": name} for name in ESTIMATORS}
+    trackers = {name: PostureTracker(calibration, RecognitionSettings(dark_level=imaging.dark_level,
+                                                                      body_prior=body_prior, **extra), body=spec)
+                for name, extra in variants.items()}
+    scores: dict[str, list[dict[str, Any]]] = {name: [] for name in variants}
     elapsed = 0.0
     for i, pose in enumerate(poses):
         before = []

@@ -51,8 +51,9 @@ def study(seed: int, robot_id: int, spec: Any, tracked: bool, poses_n: int, max_
     body = RobotBody(spec.length_mm, spec.diameter_mm, spec.tip_angle_deg, spec.attenuation_per_mm)
     renderer = BiplaneRenderer(views, body, vessel=phantom, settings=imaging, seed=seed + robot_id)
     step_rng = np.random.default_rng([seed, robot_id, 1])
-    tracker = PostureTracker(cal, RecognitionSettings(dark_level=imaging.dark_level, max_mass_excess=max_mass_excess),
-                             body=spec)
+    # (the rule as it was studied: the heavy view's slide and the flag; settings.mass_rule's default is off)
+    tracker = PostureTracker(cal, RecognitionSettings(dark_level=imaging.dark_level, max_mass_excess=max_mass_excess,
+                                                      mass_rule="slide"), body=spec)
     expected = BodyModel.of(spec).mass_mm2
     seen: dict[str, Any] = {}
     posture_of = tracker._posture

@@ -251,6 +251,14 @@ class RecognitionSettings(StrictModel):
     #: vessel that did not slide up to ~1.03.
     max_mass_excess: float = Field(0.04, gt=0)
     max_mass_deficit: float = Field(0.08, gt=0, lt=1)
+    #: What a heavy view does: ``"slide"`` the sigma above and the flag, ``"flag"`` the flag only (the moment
+    #: centroid keeps its sigma), ``"off"`` nothing (the views are not weighed). Off by default: on held-out
+    #: seeds the slide did not pay (robot 6 centroid RMS, flag or off -> slide: standing seeds cold 0.0630 ->
+    #: 0.0656, tracked 0.0604 -> 0.0614, dev seeds 1-20 0.0873 -> 0.0896; robot 3 0.0501 -> 0.0500, 0.0474 ->
+    #: 0.0473, 0.0601 -> 0.0589; robots 1, 2, 4, 5, 7 never heavy, standing or dev seeds: their views light), the flag
+    #: told nothing new: the heavy frames' errors are large (RMS 0.17-0.25 mm against 0.02-0.03 unflagged) but
+    #: all but 2 of 62 were flagged by other checks, and those 2 were right (0.016, 0.030 mm).
+    mass_rule: Literal["slide", "flag", "off"] = "off"
 
     # -- tracking -----------------------------------------------------------------------------------
     #: Margin (px) of the region of interest around the predicted robot image.

@@ -651,8 +651,9 @@ class PostureTracker:
         :func:`.body_mass.centroid_slide_mm`), the posture flagged with the reason; 0 otherwise (and without the
         body's mass, and for the paper's estimator, kept verbatim)."""
         body = self.body
+        rule = self.settings.mass_rule
         if (body is None or body.mass_mm2 is None or posture.centroid_mm is None
-                or self.settings.estimator == "paper"):
+                or self.settings.estimator == "paper" or rule == "off"):
             return 0.0
         masses = view_masses_mm2(self.calibration, blobs, posture.centroid_mm)
         heavy = heavy_view(masses, body.mass_mm2, self.settings.max_mass_excess, self.settings.max_mass_deficit)
@@ -664,8 +665,8 @@ class PostureTracker:
         posture.reason = "; ".join(filter(None, [posture.reason, (
             f"view {heavy}'s blob weighs {masses[heavy] / body.mass_mm2:.2f} of the body (view {other}'s "
             f"{masses[other] / body.mass_mm2:.2f}): another structure merged into it, its centroid may have slid "
-            f"~{slide:.1f} mm along the axis; the ends place the body")]))
-        return slide
+            f"~{slide:.1f} mm along the axis" + ("; the ends place the body" if rule == "slide" else ""))]))
+        return slide if rule == "slide" else 0.0
 
     def _remember(self, posture: Posture) -> None:
         assert posture.centroid_mm is not None

@@ -123,13 +123,8 @@ def test_a_heavy_views_slide_leaves_the_place_to_the_clean_ends(calibration: Cal
     np.testing.assert_array_equal(zero.centroid_mm, believed.centroid_mm)
 
 
-def test_the_tracker_flags_and_weighs_a_heavy_view(calibration: Calibration, clean_frame, spec6) -> None:
-    pose, pair = clean_frame
-    tracker = PostureTracker(calibration, RecognitionSettings(dark_level=ImagingSettings().dark_level), body=spec6)
-    plain = tracker.process(pair.images["p"], pair.images["q"])
-    # The same frame with view q's blob made 12 % heavier (as a merged vessel piece would): flagged, the reason
-    # naming the view; the placement then rests on the ends (this clean frame's: the centroid stays close).
-    tracker.reset()
+def _heavier_q(tracker: PostureTracker) -> None:
+    """Have ``tracker`` see view q's blob 12 % heavier than found (as a merged vessel piece would make it)."""
     found = tracker._search_full
 
     def heavier(images, timings):
@@ -137,9 +132,31 @@ def test_the_tracker_flags_and_weighs_a_heavy_view(calibration: Calibration, cle
         blobs = dict(blobs, q=dataclasses.replace(blobs["q"], strength=blobs["q"].strength * 1.12))
         return (blobs, feats), failure
     tracker._search_full = heavier
-    flagged = tracker.process(pair.images["p"], pair.images["q"])
-    assert flagged.ok and flagged.ambiguous and not plain.ambiguous
-    weighs = re.search(r"view q's blob weighs ([0-9.]+) of the body \(view p's ([0-9.]+)\)", flagged.reason)
-    assert weighs and float(weighs.group(1)) > 1.04 and 0.92 <= float(weighs.group(2)) <= 1.04
-    assert np.linalg.norm(flagged.centroid_mm - pose.centroid_mm) < 0.1
-    assert not np.array_equal(flagged.centroid_mm, plain.centroid_mm)
+
+
+@pytest.mark.parametrize("rule", ["slide", "flag", "off"])
+def test_the_mass_rule_flags_and_weighs_a_heavy_view_as_set(calibration: Calibration, clean_frame, spec6,
+                                                            rule: str) -> None:
+    pose, pair = clean_frame
+    settings = RecognitionSettings(dark_level=ImagingSettings().dark_level, mass_rule=rule)
+    tracker = PostureTracker(calibration, settings, body=spec6)
+    plain = tracker.process(pair.images["p"], pair.images["q"])
+    # The same frame with view q's blob made 12 % heavier: "slide" and "flag" flag it, the reason naming the
+    # view; "slide" then rests the placement on the ends (this clean frame's: the centroid stays close), the
+    # others place it as the plain frame; "off" does not weigh the views.
+    tracker.reset()
+    _heavier_q(tracker)
+    heavy = tracker.process(pair.images["p"], pair.images["q"])
+    assert heavy.ok and not plain.ambiguous
+    weighs = re.search(r"view q's blob weighs ([0-9.]+) of the body \(view p's ([0-9.]+)\)", heavy.reason or "")
+    if rule == "off":
+        assert not heavy.ambiguous and weighs is None
+    else:
+        assert heavy.ambiguous
+        assert weighs and float(weighs.group(1)) > 1.04 and 0.92 <= float(weighs.group(2)) <= 1.04
+    assert np.linalg.norm(heavy.centroid_mm - pose.centroid_mm) < 0.1
+    if rule == "slide":
+        assert not np.array_equal(heavy.centroid_mm, plain.centroid_mm)
+        assert "the ends place the body" in heavy.reason
+    else:
+        np.testing.assert_array_equal(heavy.centroid_mm, plain.centroid_mm)
