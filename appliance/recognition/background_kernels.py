@@ -360,16 +360,19 @@ def _median_pair(bits: np.ndarray, n: int, k: int) -> tuple[np.uint32, np.uint32
 
 
 @kernel
-def _attenuation(image: np.ndarray, y0: int, y1: int, x0: int, x1: int, coarse: np.ndarray, fy: float, fx: float,
-                 log_table: np.ndarray) -> np.ndarray:  # pragma: no cover
+def _attenuation_and_steps(image: np.ndarray, y0: int, y1: int, x0: int, x1: int, coarse: np.ndarray, fy: float,
+                           fx: float, log_table: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
     """:func:`.view_kernels.attenuation_from_coarse`'s values (the same float32 operations on each pixel),
-    in two vectorisable passes a row: ``log B`` of the row from its coarse neighbours, then the
-    gray levels' logs subtracted, instead of both inside one loop that the compiler leaves scalar."""
+    in vectorisable passes a row: ``log B`` of the row from its coarse neighbours, then the gray levels'
+    logs subtracted, instead of both inside one loop that the compiler leaves scalar; and the absolute
+    differences of horizontal neighbours, row ``y``'s ``w - 1`` at ``y * (w - 1)``, taken while the row
+    is in the cache (not in a second pass over the window)."""
     ws = coarse.shape[1]
     h, w = y1 - y0, x1 - x0
     ix0, ix1, wx = view_kernels.bilinear_columns(w, x0, fx, ws)
     wx0 = np.float32(1.0) - wx
     out = np.empty((h, w), dtype=np.float32)
+    steps = np.empty(h * max(w - 1, 0), dtype=np.float32)
     row = np.empty(ws, dtype=np.float32)
     background = np.empty(w, dtype=np.float32)
     lo, hi = ix0[0], ix1[w - 1] + 1 if w > 0 else 0
@@ -381,29 +384,26 @@ def _attenuation(image: np.ndarray, y0: int, y1: int, x0: int, x1: int, coarse: 
         o = out[y]
         for x in range(w):
             o[x] = background[x] - log_table[levels[x]]
-    return out
+        base = y * (w - 1)
+        for x in range(w - 1):
+            steps[base + x] = abs(o[x + 1] - o[x])
+    return out, steps
 
 
 @kernel
 def window_attenuation(image: np.ndarray, y0: int, y1: int, x0: int, x1: int, coarse: np.ndarray, fy: float,
                        fx: float, log_table: np.ndarray) -> tuple[np.ndarray, float]:  # pragma: no cover
-    """A detection window's attenuation (:func:`_attenuation`, the values :func:`~.segmentation.segment`
-    would compute) and its robust noise sigma, ``1.4826 m / sqrt(2)`` with
+    """A detection window's attenuation (:func:`_attenuation_and_steps`, the values
+    :func:`~.segmentation.segment` would compute) and its robust noise sigma, ``1.4826 m / sqrt(2)`` with
     ``m`` the median of the horizontal neighbours' absolute differences: the value segment's own
     measurement gives (the same order statistics, :func:`_median_pair`), at a fraction of its cost.
     The sigma is -1 where that measurement is not a plain median (a window narrower than 2 px,
     or a non-finite attenuation): the caller then lets segment measure it."""
-    a = _attenuation(image, y0, y1, x0, x1, coarse, fy, fx, log_table)
+    a, d = _attenuation_and_steps(image, y0, y1, x0, x1, coarse, fy, fx, log_table)
     h, w = a.shape
     if w < 2 or h == 0:
         return a, -1.0
     n = h * (w - 1)
-    d = np.empty(n, dtype=np.float32)
-    for y in range(h):
-        row = a[y]
-        base = y * (w - 1)
-        for x in range(w - 1):
-            d[base + x] = abs(row[x + 1] - row[x])
     bits = d.view(np.uint32)
     largest = np.uint32(0)
     for i in range(n):
