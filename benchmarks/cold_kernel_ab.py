@@ -7,7 +7,8 @@ the frame is where the copy left it) and runs on view p; base and this alternate
 every repetition. Thread CPU time per call; prints p50 / min and how many outputs differ bit for bit.
 Asserts nothing.
 
-* ``block_mean_log_4``: the block mean and log of the whole frame;
+* ``block_mean_log_4``: the block mean and log of the whole frame, and its halving (OpenCV's resize for a
+  version that does not give it);
 * ``window_attenuation``: the attenuation and noise of each detection window ``coarse_windows`` finds.
 
     .venv/bin/python benchmarks/cold_kernel_ab.py --base base.py [--kernel block_mean_log_4] [--frames 30]
@@ -15,10 +16,12 @@ Asserts nothing.
 from __future__ import annotations
 
 import argparse
+import inspect
 import sys
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -33,16 +36,24 @@ from appliance.recognition.background import _log_table, log_background  # noqa:
 from appliance.recognition.detection import coarse_windows  # noqa: E402
 
 
-def _block_mean_calls(module, image: np.ndarray, table: np.ndarray, settings: RecognitionSettings):  # type: ignore[no-untyped-def]
+def _block_mean_calls(module, image: np.ndarray, table: np.ndarray,  # type: ignore[no-untyped-def]
+                      settings: RecognitionSettings):
     out = np.empty((image.shape[0] // 4, image.shape[1] // 4), dtype=np.float32)
+    half = np.empty((out.shape[0] // 2, out.shape[1] // 2), dtype=np.float32)
+    fused = "half" in inspect.signature(module.block_mean_log_4.py_func).parameters
 
     def call() -> list[np.ndarray]:
-        module.block_mean_log_4(image.view(np.uint64), table, out)
-        return [out]
+        if fused:
+            module.block_mean_log_4(image.view(np.uint64), table, out, half)
+        else:   # (a version without the halving: the resize the background then calls)
+            module.block_mean_log_4(image.view(np.uint64), table, out)
+            half[:] = cv2.resize(out, (half.shape[1], half.shape[0]), interpolation=cv2.INTER_AREA)
+        return [out, half]
     return call
 
 
-def _window_calls(module, image: np.ndarray, table: np.ndarray, settings: RecognitionSettings):  # type: ignore[no-untyped-def]
+def _window_calls(module, image: np.ndarray, table: np.ndarray,  # type: ignore[no-untyped-def]
+                  settings: RecognitionSettings):
     background = log_background(image, settings.background_scale_px, settings.dark_level)
     rois = coarse_windows(background, settings)
 
