@@ -4,14 +4,19 @@ The other version (``--base``, e.g. ``git show 3f0ba5c:appliance/recognition/bac
 is loaded as its own module on this tree's other kernels, so only that file differs. On ``appliance bench``'s
 frames (robot 1, 1024^2), each call follows ``np.copyto`` of the pair into the host buffers (the cold regime:
 the frame is where the copy left it) and runs on view p; base and this alternate per call, their order swapped
-every repetition. Thread CPU time per call; prints p50 / min and how many outputs differ bit for bit.
+every frame and repetition. Thread CPU time per call; prints p50 / min and how many outputs differ bit for bit.
 Asserts nothing.
 
 * ``block_mean_log_4``: the block mean and log of the whole frame, and its halving (OpenCV's resize for a
   version that does not give it);
-* ``window_attenuation``: the attenuation and noise of each detection window ``coarse_windows`` finds.
+* ``window_attenuation``: the attenuation and noise of each detection window ``coarse_windows`` finds;
+* ``log_background``: the view's whole background stage, the ``background.py`` beside ``--base`` (a checkout's,
+  e.g. ``git archive 3f0ba5c | tar -x -C /tmp/base``) on that ``background_kernels.py``, against this tree's
+  (thread CPU: OpenCV's work on its own worker threads is not in it).
 
     .venv/bin/python benchmarks/cold_kernel_ab.py --base base.py [--kernel block_mean_log_4] [--frames 30]
+    .venv/bin/python benchmarks/cold_kernel_ab.py --base /tmp/base/appliance/recognition/background_kernels.py \
+        --kernel log_background
 """
 from __future__ import annotations
 
@@ -19,6 +24,7 @@ import argparse
 import inspect
 import sys
 import time
+import types
 from pathlib import Path
 
 import cv2
@@ -31,7 +37,7 @@ from steady_ab import _load  # noqa: E402
 
 from appliance.commands.bench import RenderedScene  # noqa: E402
 from appliance.compiled import warm_up_all  # noqa: E402
-from appliance.recognition import RecognitionSettings, background_kernels  # noqa: E402
+from appliance.recognition import RecognitionSettings, background, background_kernels  # noqa: E402
 from appliance.recognition.background import _log_table, log_background  # noqa: E402
 from appliance.recognition.detection import coarse_windows  # noqa: E402
 
@@ -67,7 +73,29 @@ def _window_calls(module, image: np.ndarray, table: np.ndarray,  # type: ignore[
     return call
 
 
-CALLS = {"block_mean_log_4": _block_mean_calls, "window_attenuation": _window_calls}
+def _background_calls(module, image: np.ndarray, table: np.ndarray,  # type: ignore[no-untyped-def]
+                      settings: RecognitionSettings):
+    def call() -> list[np.ndarray]:
+        b = module.log_background(image, settings.background_scale_px, settings.dark_level)
+        return [b.coarse_log, b.coarse, b.coarse_attenuation]
+    return call
+
+
+CALLS = {"block_mean_log_4": _block_mean_calls, "window_attenuation": _window_calls,
+         "log_background": _background_calls}
+
+_IMPORT = "from appliance.recognition import background_kernels\n"
+
+
+def _base_background(kernels_path: Path) -> types.ModuleType:
+    """The ``background.py`` beside ``kernels_path``, its ``background_kernels`` that file."""
+    path = kernels_path.parent / "background.py"
+    source = path.read_text()
+    assert _IMPORT in source, "the base background.py imports its kernels as this tool expects"
+    module = types.ModuleType("background_base")
+    module.__dict__["background_kernels"] = _load(kernels_path, "background_kernels_base")
+    exec(compile(source.replace(_IMPORT, ""), str(path), "exec"), module.__dict__)
+    return module
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -78,7 +106,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--reps", type=int, default=6)
     args = parser.parse_args(argv)
     warm_up_all()
-    modules = {"base": _load(args.base, "background_kernels_base"), "this": background_kernels}
+    if args.kernel == "log_background":
+        modules = {"base": _base_background(args.base), "this": background}
+    else:
+        modules = {"base": _load(args.base, "background_kernels_base"), "this": background_kernels}
     scene = RenderedScene(1024, robot_id=1)
     settings = RecognitionSettings(dark_level=scene.dark_level)
     table = _log_table(float(settings.dark_level))
