@@ -31,18 +31,18 @@ from appliance.compiled import warm_up_all  # noqa: E402
 from appliance.recognition import steady_kernels as sk  # noqa: E402
 
 
-def _load(path: Path):  # type: ignore[no-untyped-def]
-    """The file as a module whose kernels are compiled here, not cached (its cache entries would clash)."""
+def _load(path: Path, name: str = "steady_kernels_base"):  # type: ignore[no-untyped-def]
+    """The file as module ``name`` whose kernels are compiled here, not cached (its cache entries would clash)."""
     cached = compiled.kernel
     compiled.kernel = lambda function: numba.njit(nogil=True)(function)
     try:
-        return _exec(path)
+        return _exec(path, name)
     finally:
         compiled.kernel = cached
 
 
-def _exec(path: Path):  # type: ignore[no-untyped-def]
-    spec = importlib.util.spec_from_file_location("steady_kernels_base", path)
+def _exec(path: Path, name: str):  # type: ignore[no-untyped-def]
+    spec = importlib.util.spec_from_file_location(name, path)
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module  # (numba's cache finds the module by name)
     spec.loader.exec_module(module)

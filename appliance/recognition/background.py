@@ -113,8 +113,10 @@ def _log_table(dark_level: float) -> np.ndarray:
     return table
 
 
-def _downsample_log(image: np.ndarray, f: int, dark_level: float) -> np.ndarray:
-    """log of the ``f x f`` area mean of ``image`` (dark level removed, floored at 1), float32.
+def _downsample_log(image: np.ndarray, f: int, dark_level: float) -> tuple[np.ndarray, np.ndarray | None]:
+    """log of the ``f x f`` area mean of ``image`` (dark level removed, floored at 1), float32; and its
+    ``INTER_AREA`` halving (the closing's grid) where the compiled ``f = 4`` pass gives it (even sides),
+    else None.
 
     The mean is rounded to a gray level as OpenCV's ``INTER_AREA`` downsampling of a 16-bit frame
     rounds it. A 16-bit frame whose sides are multiples of ``f`` (every detector we use) takes one
@@ -127,12 +129,13 @@ def _downsample_log(image: np.ndarray, f: int, dark_level: float) -> np.ndarray:
         out = np.empty((hs, ws), dtype=np.float32)
         image = np.ascontiguousarray(image)
         if f == 4:
-            background_kernels.block_mean_log_4(image.view(np.uint64), _log_table(float(dark_level)), out)
-        else:
-            background_kernels.block_mean_log(image, f, _log_table(float(dark_level)), out)
-        return out
+            half = np.empty((hs // 2, ws // 2) if hs % 2 == 0 and ws % 2 == 0 else (0, 0), dtype=np.float32)
+            background_kernels.block_mean_log_4(image.view(np.uint64), _log_table(float(dark_level)), out, half)
+            return out, half if half.size else None
+        background_kernels.block_mean_log(image, f, _log_table(float(dark_level)), out)
+        return out, None
     small = cv2.resize(image, (ws, hs), interpolation=cv2.INTER_AREA).astype(np.float32)
-    return np.log(np.maximum(small - np.float32(dark_level), 1.0))
+    return np.log(np.maximum(small - np.float32(dark_level), 1.0)), None
 
 
 def log_background(image: np.ndarray, scale_px: int = 48, dark_level: float = 0.0) -> LogBackground:
@@ -147,10 +150,11 @@ def log_background(image: np.ndarray, scale_px: int = 48, dark_level: float = 0.
     """
     h, w = image.shape[:2]
     f = max(1, min(8, scale_px // 12))
-    logs = _downsample_log(image, f, dark_level)
+    logs, field = _downsample_log(image, f, dark_level)
     hs, ws = logs.shape
     hb, wb = max(1, hs // 2), max(1, ws // 2)
-    field = cv2.resize(logs, (wb, hb), interpolation=cv2.INTER_AREA)
+    if field is None:
+        field = cv2.resize(logs, (wb, hb), interpolation=cv2.INTER_AREA)
     k = max(3, (scale_px // (2 * f)) | 1)
     if k == background_kernels.CLOSING_SIZE and field.dtype == np.float32:
         # (The scale every setting gives: the same values as OpenCV's, in half its time.)

@@ -10,7 +10,8 @@ spread over dozens of calls are compiled loops:
 * :func:`block_mean_log` / :func:`block_mean_log_4` - the ``f x f`` block mean, rounded to a gray
   level exactly as OpenCV's ``INTER_AREA`` downsampling of a 16-bit frame rounds it, then
   ``log(max(mean - dark, 1))`` read from a table of the 65536 gray levels (a table read is several
-  times cheaper than a logarithm); the ``f = 4`` variant (the default scale) adds whole 64-bit words;
+  times cheaper than a logarithm); the ``f = 4`` variant (the default scale) adds whole 64-bit words,
+  four rows at once, and halves the result as the next step's ``INTER_AREA`` resize would;
 * :func:`closing_7` - the grey closing of the coarse field by a 7 x 7 structuring element (the
   ellipse every background scale uses), exact min/max as OpenCV's ``MORPH_CLOSE`` with replicated
   borders, in a few vectorised passes instead of one pass per element pixel;
@@ -78,37 +79,46 @@ def block_mean_log(image: np.ndarray, f: int, table: np.ndarray, out: np.ndarray
 
 
 @kernel
-def block_mean_log_4(words: np.ndarray, table: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover
-    """:func:`block_mean_log` for ``f = 4`` (the default scale), the same values, about three times faster.
+def block_mean_log_4(words: np.ndarray, table: np.ndarray, out: np.ndarray,
+                     half: np.ndarray) -> None:  # pragma: no cover
+    """:func:`block_mean_log` for ``f = 4`` (the default scale), the same values, several times faster;
+    and, if ``half`` is shaped ``(hs // 2, ws // 2)`` for an even ``out`` of ``(hs, ws)`` (else it is left
+    alone: pass a ``(0, 0)`` array), the 2 x 2 area mean of ``out`` in it, ``((a + b) + (c + d)) * 0.25`` in
+    float32: OpenCV's ``INTER_AREA`` halving of a float32 image to the last bit, taken from each pair of
+    rows while they are in the cache instead of a resize call that reads ``out`` again.
 
     ``words`` is the 16-bit frame viewed as 64-bit words, four pixels each: one word is one block's
-    row. Masks split a word into two 32-bit lanes holding pixel sums ``p0 + p1`` and ``p2 + p3``
-    (four rows of these stay below 2^32), so a block's sum is built with whole-word additions that
-    vectorise, and only the final lane sum is per block.
+    row. Masks split a word into two 32-bit lanes holding pixel sums ``p0 + p1`` and ``p2 + p3``, so
+    a block's sum is whole-word additions of its four rows (read in the same loop, no accumulator
+    row written and read back; sixteen pixels stay below 2^32 a lane) and one lane sum, all in a loop
+    that vectorises. The gray levels are unsigned, so the table reads that follow (the scalar part)
+    carry no negative-index wrap-around.
     """
     hs, ws = out.shape
     pairs = np.uint64(0x0000FFFF0000FFFF)
     low = np.uint64(0xFFFFFFFF)
-    acc = np.empty(ws, dtype=np.uint64)
-    level = np.empty(ws, dtype=np.int64)
+    shift = np.uint64(16)
+    level = np.empty(ws, dtype=np.uint32)
+    halves = hs % 2 == 0 and ws % 2 == 0 and half.shape[0] == hs // 2 and half.shape[1] == ws // 2
+    quarter = np.float32(0.25)
     for i in range(hs):
-        row = words[4 * i]
+        r0, r1, r2, r3 = words[4 * i], words[4 * i + 1], words[4 * i + 2], words[4 * i + 3]
         for j in range(ws):
-            v = row[j]
-            acc[j] = (v & pairs) + ((v >> np.uint64(16)) & pairs)
-        for r in range(1, 4):
-            row = words[4 * i + r]
-            for j in range(ws):
-                v = row[j]
-                acc[j] += (v & pairs) + ((v >> np.uint64(16)) & pairs)
-        for j in range(ws):
-            a = acc[j]
-            s = np.int64((a & low) + (a >> np.uint64(32)))
+            v0, v1, v2, v3 = r0[j], r1[j], r2[j], r3[j]
+            even = (v0 & pairs) + (v1 & pairs) + (v2 & pairs) + (v3 & pairs)
+            odd = ((v0 >> shift) & pairs) + ((v1 >> shift) & pairs) + ((v2 >> shift) & pairs) + ((v3 >> shift) & pairs)
+            a = even + odd
+            s = np.uint32((a & low) + (a >> np.uint64(32)))
             # s / 16 rounded half to even, in integers (exact, as the float32 product is for 16).
-            level[j] = (s + 7 + ((s >> 4) & 1)) >> 4
+            level[j] = (s + np.uint32(7) + ((s >> np.uint32(4)) & np.uint32(1))) >> np.uint32(4)
         o = out[i]
-        for j in range(ws):
+        for j in range(np.uint64(ws)):
             o[j] = table[level[j]]
+        if halves and i % 2 == 1:
+            above = out[i - 1]
+            h = half[i // 2]
+            for j in range(ws // 2):
+                h[j] = ((above[2 * j] + above[2 * j + 1]) + (o[2 * j] + o[2 * j + 1])) * quarter
 
 
 #: Rows (and the largest half width) of the structuring element :func:`closing_7` takes.
@@ -362,16 +372,19 @@ def _median_pair(bits: np.ndarray, n: int, k: int) -> tuple[np.uint32, np.uint32
 
 
 @kernel
-def _attenuation(image: np.ndarray, y0: int, y1: int, x0: int, x1: int, coarse: np.ndarray, fy: float, fx: float,
-                 log_table: np.ndarray) -> np.ndarray:  # pragma: no cover
+def _attenuation_and_steps(image: np.ndarray, y0: int, y1: int, x0: int, x1: int, coarse: np.ndarray, fy: float,
+                           fx: float, log_table: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
     """:func:`.view_kernels.attenuation_from_coarse`'s values (the same float32 operations on each pixel),
-    in two vectorisable passes a row: ``log B`` of the row from its coarse neighbours, then the
-    gray levels' logs subtracted, instead of both inside one loop that the compiler leaves scalar."""
+    in vectorisable passes a row: ``log B`` of the row from its coarse neighbours, then the gray levels'
+    logs subtracted, instead of both inside one loop that the compiler leaves scalar; and the absolute
+    differences of horizontal neighbours, row ``y``'s ``w - 1`` at ``y * (w - 1)``, taken while the row
+    is in the cache (not in a second pass over the window)."""
     ws = coarse.shape[1]
     h, w = y1 - y0, x1 - x0
     ix0, ix1, wx = view_kernels.bilinear_columns(w, x0, fx, ws)
     wx0 = np.float32(1.0) - wx
     out = np.empty((h, w), dtype=np.float32)
+    steps = np.empty(h * max(w - 1, 0), dtype=np.float32)
     row = np.empty(ws, dtype=np.float32)
     background = np.empty(w, dtype=np.float32)
     lo, hi = ix0[0], ix1[w - 1] + 1 if w > 0 else 0
@@ -383,29 +396,26 @@ def _attenuation(image: np.ndarray, y0: int, y1: int, x0: int, x1: int, coarse: 
         o = out[y]
         for x in range(w):
             o[x] = background[x] - log_table[levels[x]]
-    return out
+        base = y * (w - 1)
+        for x in range(w - 1):
+            steps[base + x] = abs(o[x + 1] - o[x])
+    return out, steps
 
 
 @kernel
 def window_attenuation(image: np.ndarray, y0: int, y1: int, x0: int, x1: int, coarse: np.ndarray, fy: float,
                        fx: float, log_table: np.ndarray) -> tuple[np.ndarray, float]:  # pragma: no cover
-    """A detection window's attenuation (:func:`_attenuation`, the values :func:`~.segmentation.segment`
-    would compute) and its robust noise sigma, ``1.4826 m / sqrt(2)`` with
+    """A detection window's attenuation (:func:`_attenuation_and_steps`, the values
+    :func:`~.segmentation.segment` would compute) and its robust noise sigma, ``1.4826 m / sqrt(2)`` with
     ``m`` the median of the horizontal neighbours' absolute differences: the value segment's own
     measurement gives (the same order statistics, :func:`_median_pair`), at a fraction of its cost.
     The sigma is -1 where that measurement is not a plain median (a window narrower than 2 px,
     or a non-finite attenuation): the caller then lets segment measure it."""
-    a = _attenuation(image, y0, y1, x0, x1, coarse, fy, fx, log_table)
+    a, d = _attenuation_and_steps(image, y0, y1, x0, x1, coarse, fy, fx, log_table)
     h, w = a.shape
     if w < 2 or h == 0:
         return a, -1.0
     n = h * (w - 1)
-    d = np.empty(n, dtype=np.float32)
-    for y in range(h):
-        row = a[y]
-        base = y * (w - 1)
-        for x in range(w - 1):
-            d[base + x] = abs(row[x + 1] - row[x])
     bits = d.view(np.uint32)
     largest = np.uint32(0)
     for i in range(n):
@@ -643,7 +653,7 @@ def warm_up() -> None:
     frozen.flags.writeable = False
     for frame in (image, frozen):
         block_mean_log(frame, 4, table, small)
-        block_mean_log_4(frame.view(np.uint64), table, small)
+        block_mean_log_4(frame.view(np.uint64), table, small, np.empty((1, 1), dtype=np.float32))
     median_abs_step(small, 2, 0.0)
     for frame in (image, frozen):
         window_attenuation(frame, 0, 4, 0, 4, small, 4.0, 4.0, table)

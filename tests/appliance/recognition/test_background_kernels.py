@@ -32,7 +32,7 @@ def test_block_mean_log_rounds_like_opencv_area_downsampling(f: int) -> None:
     if f > 1:
         image[2 * f:3 * f, :f] = 1000
         image[2 * f, 0] = 1001   # a sum of (f^2 - 1) * 1000 + 1001: a fraction 1/f^2 above 1000
-    out = _downsample_log(image, f, 1000.0)
+    out, _ = _downsample_log(image, f, 1000.0)
     np.testing.assert_array_equal(out, _reference_log(image, f, 1000.0))
 
 
@@ -47,17 +47,35 @@ def test_block_mean_log_4_ties_and_extremes() -> None:
     image = blocks.reshape(1, len(sums), 4, 4).transpose(0, 2, 1, 3).reshape(4, 4 * len(sums)).astype(np.uint16)
     out = np.empty((1, len(sums)), dtype=np.float32)
     table = _log_table(0.0)
-    kernels.block_mean_log_4(image.view(np.uint64), table, out)
+    kernels.block_mean_log_4(image.view(np.uint64), table, out, np.empty((0, 0), dtype=np.float32))
     np.testing.assert_array_equal(out, _reference_log(image, 4, 0.0))
     generic = np.empty_like(out)
     kernels.block_mean_log(image, 4, table, generic)
     np.testing.assert_array_equal(generic, out)
 
 
+def test_block_mean_log_4_halves_its_output_as_opencvs_area_resize() -> None:
+    """The halving the f = 4 pass gives is ``cv2.resize(..., INTER_AREA)`` of its output, bit for bit; an odd
+    grid gets none (the caller resizes)."""
+    rng = np.random.default_rng(12)
+    for image in (rng.integers(0, 65536, (256, 512), dtype=np.uint16),
+                  (20000 + rng.normal(0, 3000, (512, 256))).clip(0, 65535).astype(np.uint16)):
+        logs, half = _downsample_log(image, 4, 900.0)
+        assert half is not None and half.shape == (logs.shape[0] // 2, logs.shape[1] // 2)
+        expected = cv2.resize(logs, (half.shape[1], half.shape[0]), interpolation=cv2.INTER_AREA)
+        np.testing.assert_array_equal(half.view(np.uint32), expected.view(np.uint32))
+    logs, half = _downsample_log(rng.integers(900, 40000, (36, 64), dtype=np.uint16), 4, 900.0)
+    assert logs.shape == (9, 16) and half is None
+    untouched = np.full((2, 2), 7.0, dtype=np.float32)   # not the (1, 1) halving of a (2, 2) output
+    kernels.block_mean_log_4(np.zeros((8, 8), dtype=np.uint16).view(np.uint64), _log_table(0.0),
+                             np.empty((2, 2), dtype=np.float32), untouched)
+    assert np.all(untouched == 7.0)
+
+
 def test_downsampling_of_sizes_that_are_not_multiples_goes_through_opencv() -> None:
     rng = np.random.default_rng(7)
     image = rng.integers(900, 40000, (150, 213), dtype=np.uint16)
-    np.testing.assert_allclose(_downsample_log(image, 4, 1000.0), _reference_log(image, 4, 1000.0), atol=1e-6)
+    np.testing.assert_allclose(_downsample_log(image, 4, 1000.0)[0], _reference_log(image, 4, 1000.0), atol=1e-6)
 
 
 @pytest.mark.parametrize("shape", [(128, 128), (45, 35), (7, 9), (1, 5), (3, 1), (1, 1)])
@@ -114,7 +132,7 @@ def test_log_background_closes_and_blurs_the_field_as_opencv_does() -> None:
     image = (30000 - 8 * np.hypot(y - 200, x - 300) + rng.normal(0, 300, (512, 512))).astype(np.uint16)
     image[250:262, 100:180] = 9000   # a dark bar the closing removes
     background = log_background(image, 48, 1000.0)
-    logs = _downsample_log(image, 4, 1000.0)
+    logs, _ = _downsample_log(image, 4, 1000.0)
     field = cv2.resize(logs, (64, 64), interpolation=cv2.INTER_AREA)
     closed = cv2.morphologyEx(field, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (7, 7)),
                               borderType=cv2.BORDER_REPLICATE)
