@@ -483,6 +483,18 @@ def _principal(sxx, syy, sxy, n):  # pragma: no cover - compiled
 
 
 @kernel
+def _central(m00, m10, m01, m20, m02, m11):  # pragma: no cover - compiled
+    """``m00, m10, m01, mu20, mu02, mu11`` from the raw moments (cv2.moments' central ones)."""
+    if m00 == 0.0:
+        return m00, m10, m01, 0.0, 0.0, 0.0
+    cx, cy = m10 / m00, m01 / m00
+    mu20 = m20 - cx * m10
+    mu11 = m11 - cx * m01
+    mu02 = m02 - cy * m01
+    return m00, m10, m01, mu20, mu02, mu11
+
+
+@kernel
 def moments(weights):  # pragma: no cover - compiled
     """``m00, m10, m01, mu20, mu02, mu11`` of a float image (cv2.moments' values, double accumulation)."""
     h, w = weights.shape
@@ -500,13 +512,45 @@ def moments(weights):  # pragma: no cover - compiled
         m20 += r2
         m11 += r1 * y
         m02 += r0 * y * y
-    if m00 == 0.0:
-        return m00, m10, m01, 0.0, 0.0, 0.0
-    cx, cy = m10 / m00, m01 / m00
-    mu20 = m20 - cx * m10
-    mu11 = m11 - cx * m01
-    mu02 = m02 - cy * m01
-    return m00, m10, m01, mu20, mu02, mu11
+    return _central(m00, m10, m01, m20, m02, m11)
+
+
+@kernel
+def moments_and_capped(weights, cap):  # pragma: no cover - compiled
+    """:func:`moments` of ``weights`` and of ``np.minimum(weights, np.float32(cap))``, in one pass and without
+    the capped copy: the same sums in the same order as the two calls (12 numbers, the weights' first)."""
+    h, w = weights.shape
+    cap32 = np.float32(cap)
+    m00 = m10 = m01 = m20 = m02 = m11 = 0.0
+    t00 = t10 = t01 = t20 = t02 = t11 = 0.0
+    for y in range(h):
+        r0 = r1 = r2 = 0.0
+        q0 = q1 = q2 = 0.0
+        for x in range(w):
+            value = weights[y, x]
+            v = float(value)
+            r0 += v
+            r1 += v * x
+            r2 += v * x * x
+            c = float(cap32 if cap32 < value else value)  # np.minimum's (a NaN weight stays NaN)
+            q0 += c
+            q1 += c * x
+            q2 += c * x * x
+        m00 += r0
+        m10 += r1
+        m01 += r0 * y
+        m20 += r2
+        m11 += r1 * y
+        m02 += r0 * y * y
+        t00 += q0
+        t10 += q1
+        t01 += q0 * y
+        t20 += q2
+        t11 += q1 * y
+        t02 += q0 * y * y
+    a00, a10, a01, a20, a02, a11 = _central(m00, m10, m01, m20, m02, m11)
+    b00, b10, b01, b20, b02, b11 = _central(t00, t10, t01, t20, t02, t11)
+    return a00, a10, a01, a20, a02, a11, b00, b10, b01, b20, b02, b11
 
 
 # ------------------------------------------------------------------------------------ one candidate
@@ -1323,6 +1367,14 @@ def _eig2(s11, s22, s12):  # pragma: no cover - compiled
 @kernel
 def axial_profile_of(weights, c0, c1, v0, v1):  # pragma: no cover - compiled
     """The weights' axial profile in 1-px bins with linear interpolation, [1 2 1]/4 smoothed; ``(profile, s0)``."""
+    profile, s0, _ = _profile_and_axis_sigma(weights, c0, c1, v0, v1, False, 0.0, 0.0)
+    return profile, s0
+
+
+@kernel
+def _profile_and_axis_sigma(weights, c0, c1, v0, v1, with_sigma, spread, pixel_sigma):  # pragma: no cover
+    """:func:`axial_profile_of`'s ``(profile, s0)`` and, if ``with_sigma``, :func:`axis_sigma_of` (else NaN)
+    in the profile's pass over the weights: each pixel's terms and each sum's order as in the two kernels."""
     h, w = weights.shape
     s_min, s_max, i_max = np.inf, -np.inf, -1
     for y in range(h):
@@ -1339,20 +1391,45 @@ def axial_profile_of(weights, c0, c1, v0, v1):  # pragma: no cover - compiled
     n = i_max + 4
     lower = np.zeros(n)
     upper = np.zeros(n)
+    total, acc = 0.0, 0.0
     for y in range(h):
         for x in range(w):
-            wt = float(weights[y, x])
+            value = weights[y, x]
+            wt = float(value)
             if wt != 0:
                 u = ((x - c0) * v0 + (y - c1) * v1) - s0
                 i = int(u)
                 frac = u - i
                 lower[i] += wt * (1.0 - frac)
                 upper[i + 1] += wt * frac
+            if with_sigma:
+                total, acc = _axis_sigma_terms(value, x, y, c0, c1, v0, v1, total, acc)
     raw = lower + upper
     profile = raw.copy()
     for i in range(1, n - 1):
         profile[i] = 0.25 * raw[i - 1] + 0.5 * raw[i] + 0.25 * raw[i + 1]
-    return profile, s0
+    return profile, s0, _axis_sigma_from(total, acc, spread, pixel_sigma) if with_sigma else np.nan
+
+
+@kernel
+def _axis_sigma_terms(wt, x, y, c0, c1, v0, v1, total, acc):  # pragma: no cover - compiled
+    """:func:`axis_sigma_of`'s sums ``total, acc`` with the float32 weight ``wt`` of pixel ``x, y`` added."""
+    total += wt
+    if wt != 0:
+        dx, dy = x - c0, y - c1
+        s = dx * v0 + dy * v1
+        t = -dx * v1 + dy * v0
+        gain = np.exp(min(max(wt, np.float32(0.0)), np.float32(12.0)))
+        acc += (s * t) ** 2 * gain
+    return total, acc
+
+
+@kernel
+def _axis_sigma_from(total, acc, spread, pixel_sigma):  # pragma: no cover - compiled
+    """:func:`axis_sigma_of` from its sums."""
+    if total <= 0 or spread <= 0:
+        return np.inf
+    return pixel_sigma * math.sqrt(acc) / (total * spread)
 
 
 @kernel
@@ -1362,17 +1439,8 @@ def axis_sigma_of(weights, c0, c1, v0, v1, spread, pixel_sigma):  # pragma: no c
     total, acc = 0.0, 0.0
     for y in range(h):
         for x in range(w):
-            wt = weights[y, x]
-            total += wt
-            if wt != 0:
-                dx, dy = x - c0, y - c1
-                s = dx * v0 + dy * v1
-                t = -dx * v1 + dy * v0
-                gain = np.exp(min(max(wt, np.float32(0.0)), np.float32(12.0)))
-                acc += (s * t) ** 2 * gain
-    if total <= 0 or spread <= 0:
-        return np.inf
-    return pixel_sigma * math.sqrt(acc) / (total * spread)
+            total, acc = _axis_sigma_terms(weights[y, x], x, y, c0, c1, v0, v1, total, acc)
+    return _axis_sigma_from(total, acc, spread, pixel_sigma)
 
 
 @kernel
@@ -1470,14 +1538,17 @@ def weighted_view_features(weights, cap, pixel_sigma, levels):  # pragma: no cov
     mixed moment's sampling error (:data:`MOMENT_BIAS_PX2`) together."""
     n = levels.size
     out = np.zeros(7 + 2 * n)
-    m00, m10, m01, mu20, mu02, mu11 = moments(weights)
+    capped = math.isfinite(cap)
+    if capped:  # the capped weights' moments in the same pass (their axis, if the weights have any)
+        m00, m10, m01, mu20, mu02, mu11, t00, _, _, t20, t02, t11 = moments_and_capped(weights, cap)
+    else:
+        m00, m10, m01, mu20, mu02, mu11 = moments(weights)
+        t00 = t20 = t02 = t11 = 0.0
     if not m00 > 0:
         return 0, out
     c0, c1 = m10 / m00, m01 / m00
     l1, l2, v0, v1 = _eig2(mu20 / m00, mu02 / m00, mu11 / m00)
-    if math.isfinite(cap):
-        capped = np.minimum(weights, np.float32(cap))
-        t00, _, _, t20, t02, t11 = moments(capped)
+    if capped:
         if not t00 > 0:
             return 0, out
         _, _, a0, a1 = _eig2(t20 / t00, t02 / t00, t11 / t00)
@@ -1485,8 +1556,8 @@ def weighted_view_features(weights, cap, pixel_sigma, levels):  # pragma: no cov
             v0, v1 = a0, a1
         else:
             v0, v1 = -a0, -a1
-    profile, s0 = axial_profile_of(weights, c0, c1, v0, v1)
-    axis_sigma = axis_sigma_of(weights, c0, c1, v0, v1, l1 - l2, pixel_sigma)
+    # The axial profile and the axis' noise in one pass over the weights (axial_profile_of, axis_sigma_of).
+    profile, s0, axis_sigma = _profile_and_axis_sigma(weights, c0, c1, v0, v1, True, l1 - l2, pixel_sigma)
     if l1 - l2 > 0:  # (else axis_sigma_of's inf stands)
         axis_sigma = math.hypot(axis_sigma, MOMENT_BIAS_PX2 / (l1 - l2))
     plateau = profile.max()
