@@ -33,8 +33,8 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from appliance import compiled  # noqa: E402
 from appliance.commands.bench import RenderedScene  # noqa: E402
 from appliance.compiled import warm_up_all  # noqa: E402
-from appliance.recognition import PostureTracker, RecognitionSettings  # noqa: E402
 from appliance.recognition import steady_kernels as sk  # noqa: E402
+from steady_kernel_profile import _recorded_calls  # noqa: E402
 
 #: The chain's files, each loaded after those it uses.
 CHAIN = ("view_kernels", "roi_kernels", "steady_kernels")
@@ -60,27 +60,6 @@ def _load_chain(revision: str) -> types.ModuleType:
     finally:
         compiled.kernel = cached
     return loaded["steady_kernels"]
-
-
-def _recorded_calls(frames: list, scene: RenderedScene) -> list:
-    """(frame index, search_pair's arguments after the two images, this tree's signature) of every call."""
-    calls: list = []
-    original = sk.search_pair
-    current = [0]
-
-    def spy(image_p, image_q, *args):  # type: ignore[no-untyped-def]
-        calls.append((current[0], [a.copy() if isinstance(a, np.ndarray) else a for a in args]))
-        return original(image_p, image_q, *args)
-
-    tracker = PostureTracker(scene.calibration, RecognitionSettings(dark_level=scene.dark_level))
-    sk.search_pair = spy
-    try:
-        for n, (p, q) in enumerate(frames):
-            current[0] = n
-            tracker.process(p, q, frame=n, t=n / scene.fps)
-    finally:
-        sk.search_pair = original
-    return calls
 
 
 class _Side:

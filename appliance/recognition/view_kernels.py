@@ -495,6 +495,18 @@ def _central(m00, m10, m01, m20, m02, m11):  # pragma: no cover - compiled
 
 
 @kernel
+def _with_pixel(r0, r1, r2, v, x):  # pragma: no cover - compiled
+    """A row's sums of ``v``, ``v x``, ``v x x`` with pixel ``x``'s value ``v`` added."""
+    return r0 + v, r1 + v * x, r2 + v * x * x
+
+
+@kernel
+def _with_row(m00, m10, m01, m20, m02, m11, r0, r1, r2, y):  # pragma: no cover - compiled
+    """The raw moments with row ``y``'s sums (:func:`_with_pixel`) added."""
+    return m00 + r0, m10 + r1, m01 + r0 * y, m20 + r2, m02 + r0 * y * y, m11 + r1 * y
+
+
+@kernel
 def moments(weights):  # pragma: no cover - compiled
     """``m00, m10, m01, mu20, mu02, mu11`` of a float image (cv2.moments' values, double accumulation)."""
     h, w = weights.shape
@@ -502,16 +514,8 @@ def moments(weights):  # pragma: no cover - compiled
     for y in range(h):
         r0 = r1 = r2 = 0.0
         for x in range(w):
-            v = float(weights[y, x])
-            r0 += v
-            r1 += v * x
-            r2 += v * x * x
-        m00 += r0
-        m10 += r1
-        m01 += r0 * y
-        m20 += r2
-        m11 += r1 * y
-        m02 += r0 * y * y
+            r0, r1, r2 = _with_pixel(r0, r1, r2, float(weights[y, x]), x)
+        m00, m10, m01, m20, m02, m11 = _with_row(m00, m10, m01, m20, m02, m11, r0, r1, r2, y)
     return _central(m00, m10, m01, m20, m02, m11)
 
 
@@ -528,26 +532,11 @@ def moments_and_capped(weights, cap):  # pragma: no cover - compiled
         q0 = q1 = q2 = 0.0
         for x in range(w):
             value = weights[y, x]
-            v = float(value)
-            r0 += v
-            r1 += v * x
-            r2 += v * x * x
-            c = float(cap32 if cap32 < value else value)  # np.minimum's (a NaN weight stays NaN)
-            q0 += c
-            q1 += c * x
-            q2 += c * x * x
-        m00 += r0
-        m10 += r1
-        m01 += r0 * y
-        m20 += r2
-        m11 += r1 * y
-        m02 += r0 * y * y
-        t00 += q0
-        t10 += q1
-        t01 += q0 * y
-        t20 += q2
-        t11 += q1 * y
-        t02 += q0 * y * y
+            r0, r1, r2 = _with_pixel(r0, r1, r2, float(value), x)
+            # np.minimum's value (a NaN weight stays NaN)
+            q0, q1, q2 = _with_pixel(q0, q1, q2, float(cap32 if cap32 < value else value), x)
+        m00, m10, m01, m20, m02, m11 = _with_row(m00, m10, m01, m20, m02, m11, r0, r1, r2, y)
+        t00, t10, t01, t20, t02, t11 = _with_row(t00, t10, t01, t20, t02, t11, q0, q1, q2, y)
     a00, a10, a01, a20, a02, a11 = _central(m00, m10, m01, m20, m02, m11)
     b00, b10, b01, b20, b02, b11 = _central(t00, t10, t01, t20, t02, t11)
     return a00, a10, a01, a20, a02, a11, b00, b10, b01, b20, b02, b11
