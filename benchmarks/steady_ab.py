@@ -5,7 +5,8 @@ its own module on this tree's other kernels (so only that file differs). Both ru
 ``appliance bench``'s frames (robot 1, 1024^2, recorded in a first pass as ``steady_kernel_profile.py`` records
 them), each call after ``np.copyto`` of its pair into the host buffers, A and B alternating per call and their
 order swapped every repetition. Thread CPU time per call; prints p50 / p99 over all calls and repetitions and
-whether the two outputs are equal. Asserts nothing.
+whether the two outputs are equal. Asserts nothing. The other file must take this tree's arguments
+(since 54c38ab the weights' and masks' buffers); against an older chain use ``steady_chain_ab.py``.
 
     .venv/bin/python benchmarks/steady_ab.py --base /work/wt-base8/appliance/recognition/steady_kernels.py
 """

@@ -108,7 +108,7 @@ def _prefixes():  # type: ignore[no-untyped-def]
                     ("        if not found:\n            status, weights, mask = search_upto(",
                      "        if not found and not (tried and (svstop < 99 or rstop < 99)):\n"
                      "            status, weights, mask = search_upto(")],
-                   PAIR_ANCHORS, "    if stop == {k}:\n        return PAIR_PER_VIEW, w_p, m_p, w_q, m_q\n",
+                   PAIR_ANCHORS, "    if stop == {k}:\n        return PAIR_PER_VIEW\n",
                    {"search_upto": search})
 
 

@@ -103,7 +103,13 @@ OUT_BODY = OUT_POSTURE + POSTURE_SIZE
 #: The sum of the log table's entries that :func:`_warm_log_table` read (kept so that the compiler keeps its
 #: reads; means nothing).
 OUT_TABLE_WARMED = OUT_BODY + body_kernels.OUT_SIZE
-OUT_SIZE = OUT_TABLE_WARMED + 1
+#: Per view the shape (rows, columns) of the chosen blob's weights and mask, which :func:`search_pair` writes
+#: row-major into the first ``rows x columns`` of that view's row of its ``weights_buf`` and ``masks_buf``.
+OUT_WINDOW_SHAPES = OUT_TABLE_WARMED + 1
+OUT_SIZE = OUT_WINDOW_SHAPES + 4
+#: Pixels of a view's weights (and mask) that the buffers hold: a blob with a larger window takes the per-view
+#: path (its weights would not fit). The weights' window lies in the ROI; the bench's is ~30 x 60 px.
+WINDOW_CAPACITY = 1 << 18
 
 
 @kernel
@@ -687,24 +693,24 @@ def _place_body(out, inp, G):  # pragma: no cover - compiled
 
 @kernel
 def search_pair(image_p, image_q, coarse_p, coarse_q, log_table, g, params, ring_outer, ring_inner, near_hw,
-                levels, search_settings, G, inp, prev, out):  # pragma: no cover - compiled
+                levels, search_settings, G, inp, prev, weights_buf, masks_buf, out):  # pragma: no cover - compiled
     """Both views' steady-state search and the reconstruction's front (see the module docstring).
 
     ``search_settings``: ``[detect_sigma, smooth_gain, floor, min_pixels, max_tries, max_candidates,
     gate_px, axis_saturation, head_ramp_ratio, head_min_ramp_px]`` as roi_search passes them to
     search_view; ``params``, ``ring_*``, ``near_hw``, ``levels`` as search_view takes them; ``G`` the
     packed calibration; ``prev`` the previous pair's output (read where ``V_LEAN`` asks for the lean pass).
-    Returns ``(status, weights_p, mask_p, weights_q, mask_q)``.
+    ``weights_buf`` (float32) and ``masks_buf`` (uint8), each ``(2, WINDOW_CAPACITY)``, get each found
+    view's weights and mask (their shape at ``OUT_WINDOW_SHAPES``). Returns the status: the chosen blobs'
+    arrays are written, not returned, because each array a kernel returns is a new Python object (about
+    8 us for four after a frame's copy, issue 8).
     """
-    empty_w = np.zeros((0, 0), dtype=np.float32)
-    empty_m = np.zeros((0, 0), dtype=np.uint8)
     projected = project_segment(G, inp[IN_CENTRE], inp[IN_CENTRE + 1], inp[IN_CENTRE + 2], inp[IN_DIRECTION],
                                 inp[IN_DIRECTION + 1], inp[IN_DIRECTION + 2], inp[IN_HALF])
     detect_sigma, smooth_gain, floor = search_settings[0], search_settings[1], search_settings[2]
     min_pixels, max_tries, max_candidates = int(search_settings[3]), int(search_settings[4]), int(search_settings[5])
     gate_px, axis_saturation = search_settings[6], search_settings[7]
     head_ramp_ratio, head_min_ramp_px = search_settings[8], search_settings[9]
-    w_p, m_p, w_q, m_q = empty_w, empty_m, empty_w, empty_m
     warmed = 0.0
     for view in range(2):
         v = IN_VIEW + view * IN_VIEW_SIZE
@@ -725,7 +731,7 @@ def search_pair(image_p, image_q, coarse_p, coarse_q, log_table, g, params, ring
             margin += half_width
         ok, x0, y0, x1, y1 = _roi(pu, pv, eu0, ev0, eu1, ev1, margin, int(inp[v + V_HEIGHT]), int(inp[v + V_WIDTH]))
         if not ok:
-            return PAIR_PER_VIEW, w_p, m_p, w_q, m_q
+            return PAIR_PER_VIEW
         image = image_p if view == 0 else image_q
         coarse = coarse_p if view == 0 else coarse_q
         warmed += _warm_log_table(image, y0, y1, x0, x1, log_table)
@@ -767,7 +773,7 @@ def search_pair(image_p, image_q, coarse_p, coarse_q, log_table, g, params, ring
                 floor, inp[v + V_KNOWN_SIGMA], min_pixels, max_tries, max_candidates, params, ring_outer, ring_inner,
                 near_hw, pu, pv, gate_px, axis_saturation, levels, head_ramp_ratio, head_min_ramp_px, view_out)
             if status != roi_kernels.FOUND:
-                return PAIR_PER_VIEW, w_p, m_p, w_q, m_q
+                return PAIR_PER_VIEW
         out[o + R_ROI], out[o + R_ROI + 1], out[o + R_ROI + 2], out[o + R_ROI + 3] = x0, y0, x1, y1
         out[o + R_FOUND_BY] = via
         c = roi_kernels.CENTROID
@@ -777,10 +783,14 @@ def search_pair(image_p, image_q, coarse_p, coarse_q, log_table, g, params, ring
         clutter_sigma = clutter_axis_sigma(view_out[r + 11], int(view_out[r + 12]), view_out[r + 4], view_out[r + 6],
                                            view_out[roi_kernels.EIGENVALUES], view_out[roi_kernels.EIGENVALUES + 1])
         out[o + R_AXIS_SIGMA] = math.hypot(view_out[roi_kernels.AXIS_SIGMA], clutter_sigma)
-        if view == 0:
-            w_p, m_p = weights, mask
-        else:
-            w_q, m_q = weights, mask
+        wh, ww = weights.shape
+        if wh * ww > WINDOW_CAPACITY:
+            return PAIR_PER_VIEW
+        out[OUT_WINDOW_SHAPES + 2 * view], out[OUT_WINDOW_SHAPES + 2 * view + 1] = wh, ww
+        for y in range(wh):
+            for x in range(ww):
+                weights_buf[view, y * ww + x] = weights[y, x]
+                masks_buf[view, y * ww + x] = mask[y, x]
     fp = OUT_VIEW
     fq = OUT_VIEW + OUT_VIEW_SIZE
     c, a, t, e, h = roi_kernels.CENTROID, roi_kernels.AXIS, roi_kernels.TIPS, roi_kernels.EIGENVALUES, roi_kernels.HEAD
@@ -796,7 +806,7 @@ def search_pair(image_p, image_q, coarse_p, coarse_q, log_table, g, params, ring
     out[OUT_FRONT_STATUS] = status
     _finish(out, inp, G)
     _place_body(out, inp, G)
-    return PAIR_FOUND, w_p, m_p, w_q, m_q
+    return PAIR_FOUND
 
 
 def warm_up() -> None:
@@ -832,7 +842,8 @@ def warm_up() -> None:
         for lean in (0.0, 1.0):
             inp[IN_VIEW + V_LEAN] = inp[IN_VIEW + IN_VIEW_SIZE + V_LEAN] = lean
             search_pair(frame, frame, coarse, coarse, table, view_kernels.GAUSSIAN_5, params, disk, disk, disk,
-                        levels, settings, G, inp, np.zeros(OUT_SIZE), np.empty(OUT_SIZE))
+                        levels, settings, G, inp, np.zeros(OUT_SIZE), np.empty((2, WINDOW_CAPACITY), dtype=np.float32),
+                        np.empty((2, WINDOW_CAPACITY), dtype=np.uint8), np.empty(OUT_SIZE))
 
 
 register_warm_up(__name__)

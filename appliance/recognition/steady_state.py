@@ -107,6 +107,9 @@ class SteadyPair:
         self.plain_track: tuple[tuple[float, float, float], tuple[float, float, float], float, Outline,
                                 Outline] | None = None
         self._no_previous = np.zeros(sk.OUT_SIZE)
+        #: Where the call writes each view's chosen weights and mask (see objects).
+        self._weights_buf = np.zeros((2, sk.WINDOW_CAPACITY), dtype=np.float32)
+        self._masks_buf = np.zeros((2, sk.WINDOW_CAPACITY), dtype=np.uint8)
 
     def lean_views(self) -> tuple[bool, bool]:
         """Whether the last call found view p and view q by the lean pass."""
@@ -176,13 +179,13 @@ class SteadyPair:
                 m[v + 12], m[v + 13] = image.shape
             self._written = (bg_p, bg_q)
         out, self._centroid_mm, self._direction, self._rest = self._output()
-        status, w_p, m_p, w_q, m_q = sk.search_pair(image_p, image_q, bg_p.coarse, bg_q.coarse, *self._fixed,
-                                                    lean_from if lean_from is not None else
-                                                    last_out if last_out is not None else self._no_previous, out)
+        status = sk.search_pair(image_p, image_q, bg_p.coarse, bg_q.coarse, *self._fixed,
+                                lean_from if lean_from is not None else
+                                last_out if last_out is not None else self._no_previous,
+                                self._weights_buf, self._masks_buf, out)
         if status != sk.PAIR_FOUND:
             return False
         self.out = out
-        self._found = ((w_p, m_p), (w_q, m_q))
         return True
 
     def _output(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, _PlainRest]:
@@ -212,7 +215,11 @@ class SteadyPair:
         is not Python's to the last bit: then run the whole reconstruction) and output."""
         out = self.out
         found = []
-        for view, (weights, mask) in enumerate(self._found):
+        for view in range(2):
+            # The chosen blob's weights and mask, copied out of the buffers the next call overwrites.
+            rows, columns = int(out[sk.OUT_WINDOW_SHAPES + 2 * view]), int(out[sk.OUT_WINDOW_SHAPES + 2 * view + 1])
+            weights = self._weights_buf[view, :rows * columns].reshape(rows, columns).copy()
+            mask = self._masks_buf[view, :rows * columns].reshape(rows, columns).copy()
             o = sk.OUT_VIEW + view * sk.OUT_VIEW_SIZE
             x0, y0 = int(out[o + sk.R_ROI]), int(out[o + sk.R_ROI + 1])
             found.append(blob_and_features(out[o:o + sk.SEARCH_SIZE], weights, mask, x0, y0, None))

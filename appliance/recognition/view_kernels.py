@@ -483,23 +483,8 @@ def _principal(sxx, syy, sxy, n):  # pragma: no cover - compiled
 
 
 @kernel
-def moments(weights):  # pragma: no cover - compiled
-    """``m00, m10, m01, mu20, mu02, mu11`` of a float image (cv2.moments' values, double accumulation)."""
-    h, w = weights.shape
-    m00 = m10 = m01 = m20 = m02 = m11 = 0.0
-    for y in range(h):
-        r0 = r1 = r2 = 0.0
-        for x in range(w):
-            v = float(weights[y, x])
-            r0 += v
-            r1 += v * x
-            r2 += v * x * x
-        m00 += r0
-        m10 += r1
-        m01 += r0 * y
-        m20 += r2
-        m11 += r1 * y
-        m02 += r0 * y * y
+def _central(m00, m10, m01, m20, m02, m11):  # pragma: no cover - compiled
+    """``m00, m10, m01, mu20, mu02, mu11`` from the raw moments (cv2.moments' central ones)."""
     if m00 == 0.0:
         return m00, m10, m01, 0.0, 0.0, 0.0
     cx, cy = m10 / m00, m01 / m00
@@ -507,6 +492,54 @@ def moments(weights):  # pragma: no cover - compiled
     mu11 = m11 - cx * m01
     mu02 = m02 - cy * m01
     return m00, m10, m01, mu20, mu02, mu11
+
+
+@kernel
+def _with_pixel(r0, r1, r2, v, x):  # pragma: no cover - compiled
+    """A row's sums of ``v``, ``v x``, ``v x x`` with pixel ``x``'s value ``v`` added."""
+    return r0 + v, r1 + v * x, r2 + v * x * x
+
+
+@kernel
+def _with_row(m00, m10, m01, m20, m02, m11, r0, r1, r2, y):  # pragma: no cover - compiled
+    """The raw moments with row ``y``'s sums (:func:`_with_pixel`) added."""
+    return m00 + r0, m10 + r1, m01 + r0 * y, m20 + r2, m02 + r0 * y * y, m11 + r1 * y
+
+
+@kernel
+def moments(weights):  # pragma: no cover - compiled
+    """``m00, m10, m01, mu20, mu02, mu11`` of a float image (cv2.moments' values, double accumulation)."""
+    h, w = weights.shape
+    m00 = m10 = m01 = m20 = m02 = m11 = 0.0
+    for y in range(h):
+        r0 = r1 = r2 = 0.0
+        for x in range(w):
+            r0, r1, r2 = _with_pixel(r0, r1, r2, float(weights[y, x]), x)
+        m00, m10, m01, m20, m02, m11 = _with_row(m00, m10, m01, m20, m02, m11, r0, r1, r2, y)
+    return _central(m00, m10, m01, m20, m02, m11)
+
+
+@kernel
+def moments_and_capped(weights, cap):  # pragma: no cover - compiled
+    """:func:`moments` of ``weights`` and of ``np.minimum(weights, np.float32(cap))``, in one pass and without
+    the capped copy: the same sums in the same order as the two calls (12 numbers, the weights' first)."""
+    h, w = weights.shape
+    cap32 = np.float32(cap)
+    m00 = m10 = m01 = m20 = m02 = m11 = 0.0
+    t00 = t10 = t01 = t20 = t02 = t11 = 0.0
+    for y in range(h):
+        r0 = r1 = r2 = 0.0
+        q0 = q1 = q2 = 0.0
+        for x in range(w):
+            value = weights[y, x]
+            r0, r1, r2 = _with_pixel(r0, r1, r2, float(value), x)
+            # np.minimum's value (a NaN weight stays NaN)
+            q0, q1, q2 = _with_pixel(q0, q1, q2, float(cap32 if cap32 < value else value), x)
+        m00, m10, m01, m20, m02, m11 = _with_row(m00, m10, m01, m20, m02, m11, r0, r1, r2, y)
+        t00, t10, t01, t20, t02, t11 = _with_row(t00, t10, t01, t20, t02, t11, q0, q1, q2, y)
+    a00, a10, a01, a20, a02, a11 = _central(m00, m10, m01, m20, m02, m11)
+    b00, b10, b01, b20, b02, b11 = _central(t00, t10, t01, t20, t02, t11)
+    return a00, a10, a01, a20, a02, a11, b00, b10, b01, b20, b02, b11
 
 
 # ------------------------------------------------------------------------------------ one candidate
@@ -520,8 +553,8 @@ def _scanline_fill(allowed, out, seeds_y, seeds_x, n_seeds, ys, xs, n):  # pragm
     times in predictable loops, where a pixel-by-pixel fill tests eight neighbours each."""
     h, w = allowed.shape
     # Rows and columns on two stacks: a packed index would cost two integer divisions a pop.
-    stack_y = np.empty(2 * h * w + n_seeds + 2, dtype=np.int64)
-    stack_x = np.empty(2 * h * w + n_seeds + 2, dtype=np.int64)
+    stack = np.empty((2, 2 * h * w + n_seeds + 2), dtype=np.int64)  # (one allocation for both)
+    stack_y, stack_x = stack[0], stack[1]
     top = 0
     for i in range(n_seeds):
         stack_y[top], stack_x[top] = seeds_y[i], seeds_x[i]
@@ -698,10 +731,11 @@ def _fill_values(smooth, wy0, wx0, hh, ww, support, sy0, sy1, sx0, sx1, fill_row
     if c0 < 0:
         return
     nc = c1 - c0
-    tops = np.empty(nc, dtype=np.int64)
-    bottoms = np.empty(nc, dtype=np.int64)
-    v_top = np.empty(nc, dtype=np.float32)
-    v_bottom = np.empty(nc, dtype=np.float32)
+    # (Arrays of the same type in one allocation each: a kernel's allocations are ~10 % of a steady pair.)
+    ends = np.empty((2, nc), dtype=np.int64)
+    tops, bottoms = ends[0], ends[1]
+    values = np.empty((2, nc), dtype=np.float32)
+    v_top, v_bottom = values[0], values[1]
     third = np.float32(fill_rows)
     r_lo, r_hi = (sx0, sx1) if transpose else (sy0, sy1)
     for i in range(nc):
@@ -730,8 +764,8 @@ def _fill_values(smooth, wy0, wx0, hh, ww, support, sy0, sy1, sx0, sx1, fill_row
     if nc >= fill_cols:
         half = fill_cols // 2
         kern = np.float32(1.0) / np.float32(fill_cols)
-        sm_t = np.empty(nc, dtype=np.float32)
-        sm_b = np.empty(nc, dtype=np.float32)
+        smoothed = np.empty((2, nc), dtype=np.float32)
+        sm_t, sm_b = smoothed[0], smoothed[1]
         for i in range(nc):
             acc_t = np.float32(0.0)
             acc_b = np.float32(0.0)
@@ -758,9 +792,8 @@ def _fill_values(smooth, wy0, wx0, hh, ww, support, sy0, sy1, sx0, sx1, fill_row
         return
     # Lines are columns: filled row by row (the arrays' order, every line's division in one vector
     # loop) with each pixel's value as its column gives it.
-    vts = np.empty(nc)
-    rises = np.empty(nc)
-    spans = np.empty(nc)
+    lines = np.empty((3, nc))
+    vts, rises, spans = lines[0], lines[1], lines[2]
     for i in range(nc):
         vts[i], rises[i] = float(v_top[i]), float(v_bottom[i] - v_top[i])
         spans[i] = float(np.float32(bottoms[i] - tops[i]))
@@ -1004,8 +1037,8 @@ def _ring_values(ys, xs, n, outer_hw, inner_hw, hh, ww, smooth, wy0, wx0):  # pr
     g = (inner_hw.size - 1) // 2
     src, y0, x0 = _box_mask(ys, xs, n, (outer_hw.size - 1) // 2, hh, ww)
     h, w = src.shape
-    marks_o = np.zeros((h, w + 1), dtype=np.int32)
-    marks_i = np.zeros((h, w + 1), dtype=np.int32)
+    marks = np.zeros((2, h, w + 1), dtype=np.int32)
+    marks_o, marks_i = marks[0], marks[1]
     for y in range(h):
         start, end = _next_run(src, y, 0)
         while start < w:
@@ -1101,10 +1134,12 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
         for x in range(bw):
             out_row[x] = (lrow[x] == label) & (srow[x] >= level32)  # no branch: vectorised
     seen = np.zeros((bh, bw), dtype=np.uint8)
-    cys = np.empty(bh * bw, dtype=np.int64)
-    cxs = np.empty(bh * bw, dtype=np.int64)
-    seed_y = np.array([py - by])
-    seed_x = np.array([px - bx])
+    # (Arrays of the same type in one allocation each: a kernel's allocations are ~10 % of a steady pair.)
+    core = np.empty((2, bh * bw), dtype=np.int64)
+    cys, cxs = core[0], core[1]
+    seed = np.empty((2, 1), dtype=np.int64)
+    seed[0, 0], seed[1, 0] = py - by, px - bx
+    seed_y, seed_x = seed[0], seed[1]
     n = _scanline_fill(strong, seen, seed_y, seed_x, 1, cys, cxs, 0)
     if n < min_pixels:
         return _not_refined()
@@ -1188,8 +1223,8 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
                 if not (srow[j] - side[k]) > lvl32:
                     arow[j] = 0
     mask = np.zeros((hh, ww), dtype=np.uint8)
-    mys = np.empty(hh * ww, dtype=np.int64)
-    mxs = np.empty(hh * ww, dtype=np.int64)
+    body_px = np.empty((2, hh * ww), dtype=np.int64)
+    mys, mxs = body_px[0], body_px[1]
     m = _scanline_fill(above, mask, cys, cxs, n, mys, mxs, 0)
     for i in range(n):  # the core belongs to the body even where it is below the level
         y, x = cys[i], cxs[i]
@@ -1197,8 +1232,8 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
             mask[y, x] = 1
             mys[m], mxs[m] = y, x
             m += 1
-    s_of = np.empty(m)
-    t_of = np.empty(m)
+    st_of = np.empty((2, m))
+    s_of, t_of = st_of[0], st_of[1]
     for i in range(m):
         gx, gy = (wx0 + mxs[i]) - ox, (wy0 + mys[i]) - oy
         s_of[i] = gx * ax + gy * ay
@@ -1220,8 +1255,8 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
         return _not_refined()
     # The support: a rectangle around the body (along its axis), on its bounding box in the window.
     lo_t, hi_s_, lo_s_, hi_t = in_t + pad, in_hi + pad, in_lo - pad, in_t + pad
-    gxs = np.empty(4)
-    gys = np.empty(4)
+    corners = np.empty((2, 4))
+    gxs, gys = corners[0], corners[1]
     for k in range(4):
         s_ = lo_s_ if k < 2 else hi_s_
         t_ = -lo_t if k % 2 == 0 else hi_t
@@ -1249,8 +1284,8 @@ def refine(a, smooth, labels, label, bx, by, bw, bh, sigma, p, ring_outer, ring_
     near, ny0, nx0 = _dilated_box(mys, mxs, count, near_hw, hh, ww)
     nh, nw = near.shape
     ky0, ky1, kx0, kx1 = hh, -1, ww, -1
-    fys = np.empty(nh * nw, dtype=np.int64)
-    fxs = np.empty(nh * nw, dtype=np.int64)
+    near_px = np.empty((2, nh * nw), dtype=np.int64)
+    fys, fxs = near_px[0], near_px[1]
     nf = 0
     for y in range(nh):
         for x in range(nw):
@@ -1323,6 +1358,14 @@ def _eig2(s11, s22, s12):  # pragma: no cover - compiled
 @kernel
 def axial_profile_of(weights, c0, c1, v0, v1):  # pragma: no cover - compiled
     """The weights' axial profile in 1-px bins with linear interpolation, [1 2 1]/4 smoothed; ``(profile, s0)``."""
+    profile, s0, _ = _profile_and_axis_sigma(weights, c0, c1, v0, v1, False, 0.0, 0.0)
+    return profile, s0
+
+
+@kernel
+def _profile_and_axis_sigma(weights, c0, c1, v0, v1, with_sigma, spread, pixel_sigma):  # pragma: no cover
+    """:func:`axial_profile_of`'s ``(profile, s0)`` and, if ``with_sigma``, :func:`axis_sigma_of` (else NaN)
+    in the profile's pass over the weights: each pixel's terms and each sum's order as in the two kernels."""
     h, w = weights.shape
     s_min, s_max, i_max = np.inf, -np.inf, -1
     for y in range(h):
@@ -1339,20 +1382,45 @@ def axial_profile_of(weights, c0, c1, v0, v1):  # pragma: no cover - compiled
     n = i_max + 4
     lower = np.zeros(n)
     upper = np.zeros(n)
+    total, acc = 0.0, 0.0
     for y in range(h):
         for x in range(w):
-            wt = float(weights[y, x])
+            value = weights[y, x]
+            wt = float(value)
             if wt != 0:
                 u = ((x - c0) * v0 + (y - c1) * v1) - s0
                 i = int(u)
                 frac = u - i
                 lower[i] += wt * (1.0 - frac)
                 upper[i + 1] += wt * frac
+            if with_sigma:
+                total, acc = _axis_sigma_terms(value, x, y, c0, c1, v0, v1, total, acc)
     raw = lower + upper
     profile = raw.copy()
     for i in range(1, n - 1):
         profile[i] = 0.25 * raw[i - 1] + 0.5 * raw[i] + 0.25 * raw[i + 1]
-    return profile, s0
+    return profile, s0, _axis_sigma_from(total, acc, spread, pixel_sigma) if with_sigma else np.nan
+
+
+@kernel
+def _axis_sigma_terms(wt, x, y, c0, c1, v0, v1, total, acc):  # pragma: no cover - compiled
+    """:func:`axis_sigma_of`'s sums ``total, acc`` with the float32 weight ``wt`` of pixel ``x, y`` added."""
+    total += wt
+    if wt != 0:
+        dx, dy = x - c0, y - c1
+        s = dx * v0 + dy * v1
+        t = -dx * v1 + dy * v0
+        gain = np.exp(min(max(wt, np.float32(0.0)), np.float32(12.0)))
+        acc += (s * t) ** 2 * gain
+    return total, acc
+
+
+@kernel
+def _axis_sigma_from(total, acc, spread, pixel_sigma):  # pragma: no cover - compiled
+    """:func:`axis_sigma_of` from its sums."""
+    if total <= 0 or spread <= 0:
+        return np.inf
+    return pixel_sigma * math.sqrt(acc) / (total * spread)
 
 
 @kernel
@@ -1362,17 +1430,8 @@ def axis_sigma_of(weights, c0, c1, v0, v1, spread, pixel_sigma):  # pragma: no c
     total, acc = 0.0, 0.0
     for y in range(h):
         for x in range(w):
-            wt = weights[y, x]
-            total += wt
-            if wt != 0:
-                dx, dy = x - c0, y - c1
-                s = dx * v0 + dy * v1
-                t = -dx * v1 + dy * v0
-                gain = np.exp(min(max(wt, np.float32(0.0)), np.float32(12.0)))
-                acc += (s * t) ** 2 * gain
-    if total <= 0 or spread <= 0:
-        return np.inf
-    return pixel_sigma * math.sqrt(acc) / (total * spread)
+            total, acc = _axis_sigma_terms(weights[y, x], x, y, c0, c1, v0, v1, total, acc)
+    return _axis_sigma_from(total, acc, spread, pixel_sigma)
 
 
 @kernel
@@ -1470,14 +1529,17 @@ def weighted_view_features(weights, cap, pixel_sigma, levels):  # pragma: no cov
     mixed moment's sampling error (:data:`MOMENT_BIAS_PX2`) together."""
     n = levels.size
     out = np.zeros(7 + 2 * n)
-    m00, m10, m01, mu20, mu02, mu11 = moments(weights)
+    capped = math.isfinite(cap)
+    if capped:  # the capped weights' moments in the same pass (their axis, if the weights have any)
+        m00, m10, m01, mu20, mu02, mu11, t00, _, _, t20, t02, t11 = moments_and_capped(weights, cap)
+    else:
+        m00, m10, m01, mu20, mu02, mu11 = moments(weights)
+        t00 = t20 = t02 = t11 = 0.0
     if not m00 > 0:
         return 0, out
     c0, c1 = m10 / m00, m01 / m00
     l1, l2, v0, v1 = _eig2(mu20 / m00, mu02 / m00, mu11 / m00)
-    if math.isfinite(cap):
-        capped = np.minimum(weights, np.float32(cap))
-        t00, _, _, t20, t02, t11 = moments(capped)
+    if capped:
         if not t00 > 0:
             return 0, out
         _, _, a0, a1 = _eig2(t20 / t00, t02 / t00, t11 / t00)
@@ -1485,8 +1547,8 @@ def weighted_view_features(weights, cap, pixel_sigma, levels):  # pragma: no cov
             v0, v1 = a0, a1
         else:
             v0, v1 = -a0, -a1
-    profile, s0 = axial_profile_of(weights, c0, c1, v0, v1)
-    axis_sigma = axis_sigma_of(weights, c0, c1, v0, v1, l1 - l2, pixel_sigma)
+    # The axial profile and the axis' noise in one pass over the weights (axial_profile_of, axis_sigma_of).
+    profile, s0, axis_sigma = _profile_and_axis_sigma(weights, c0, c1, v0, v1, True, l1 - l2, pixel_sigma)
     if l1 - l2 > 0:  # (else axis_sigma_of's inf stands)
         axis_sigma = math.hypot(axis_sigma, MOMENT_BIAS_PX2 / (l1 - l2))
     plateau = profile.max()
