@@ -1,0 +1,198 @@
+"""What the axis-planes correction (:func:`.body_kernels._onto_axis_planes`) does to the centroid, frame by
+frame, at every axis sigma (a diagnostic; asserts nothing, changes no production code).
+
+The accuracy benchmark's frames (its poses, noise and, with ``--tracked``, its history frame) are recognised
+by the weighted estimator with the body prior, :func:`.body_kernels.place` wrapped: on each call the planes'
+shift ``delta`` (across the axis) is also computed with the sigma cut-off lifted. The final centroid at a
+planes weight ``w`` is then ``placed + (w - w_now) * delta`` (``w_now`` 1 where the cut-off let the
+correction through, 0 where not; the shift is across the axis, so the body's placement along it is unchanged
+to first order). Frames whose placement runs in the steady-state kernel (tracked plain frames) are not seen
+by the wrapper: they have no row (``placed`` is none).
+
+Per frame it writes (``--out``, JSON lines) the axis sigma, the centroid error vector (production), the
+shift, the truth's axis, the error along / across the true axis, each view's image-centroid error along and
+across its image axis (px), the axis error, and the flags; ``--summary`` prints bins of sigma over such files.
+
+Usage: ``python benchmarks/axis_planes_study.py --seeds 1-20 [--robots 1,...] [--tracked] [--poses-only SEED:ROBOT:POSE,...]
+--out FILE`` and ``python benchmarks/axis_planes_study.py --summary FILE...``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+import benchmarks.accuracy as acc  # noqa: E402
+from appliance.compiled import warm_up_all  # noqa: E402
+from appliance.recognition import PostureTracker, RecognitionSettings  # noqa: E402
+from appliance.recognition import body_kernels as bk  # noqa: E402
+from appliance.robots import load_robots  # noqa: E402
+from drivers.loopback.scene_builders import S_BEND_CENTRELINE_MM, smooth_centreline  # noqa: E402
+from drivers.loopback.xray_render import BiplaneRenderer, ImagingSettings, RobotBody, RobotPose, VesselPhantom, biplane_views  # noqa: E402
+
+_last: dict = {}
+_place = bk.place
+
+
+def _wrapped_place(G, inp, body, out):
+    _place(G, inp, body, out)
+    free = inp.copy()
+    free[bk.IN_AXIS_SIGMA] = 0.0   # (the cut-off only: the shift itself does not use the sigma)
+    rows = np.empty((2, bk._E_SIZE))
+    bk._evidence(G, free, body, 0, rows[0])
+    c = np.empty(3)
+    sigma_c = rows[0, bk._E_CORE_S] if rows[0, bk._E_CORE_N] > 0 else 0.0
+    bk._onto_axis_planes(G, free, sigma_c, c)
+    _last.update(sigma=float(inp[bk.IN_AXIS_SIGMA]), delta=(c - inp[:3]).tolist(),
+                 applied=bool(inp[bk.IN_AXIS_SIGMA] <= bk.AXIS_PLANES_MAX_SIGMA_RAD),
+                 placed=out[bk.OUT_CENTROID:bk.OUT_CENTROID + 3].tolist() if out[bk.OUT_PLACED] else None,
+                 centroid_sigma_mm=float(sigma_c))
+
+
+def _views_errors(posture, pair) -> dict:
+    res = {}
+    for name in "pq":
+        obs = posture.views.get(name)
+        if obs is None:
+            continue
+        t = pair.truth[name]
+        ax = np.asarray(obs.tips_px[0]) - np.asarray(obs.tips_px[1])
+        span = float(np.linalg.norm(ax))
+        ax = ax / span if span > 0 else ax
+        d = np.asarray(obs.centroid_px) - t.centroid_px
+        res[name] = {"along_px": float(d @ ax), "across_px": float(d @ np.array([-ax[1], ax[0]])), "span_px": span}
+    return res
+
+
+def run(seed: int, robot_ids: list[int], tracked: bool, only: set | None, out) -> None:
+    robots = load_robots()
+    views = acc.biplane_views() if hasattr(acc, "biplane_views") else biplane_views()
+    cal = acc.true_calibration(views)
+    phantom = VesselPhantom(smooth_centreline(S_BEND_CENTRELINE_MM), acc.VESSEL_RADIUS_MM, acc.VESSEL_ATTENUATION_PER_MM)
+    imaging = ImagingSettings()
+    for robot_id in robot_ids:
+        if only is not None and not any(s == seed and r == robot_id for s, r, _ in only):
+            continue
+        spec = robots[robot_id]
+        poses = acc.random_poses(np.random.default_rng([seed, robot_id]), 30)
+        body = RobotBody(spec.length_mm, spec.diameter_mm, spec.tip_angle_deg, spec.attenuation_per_mm)
+        renderer = BiplaneRenderer(views, body, vessel=phantom, settings=imaging, seed=seed + robot_id)
+        step_rng = np.random.default_rng([seed, robot_id, 1])
+        tracker = PostureTracker(cal, RecognitionSettings(estimator="weighted", dark_level=imaging.dark_level), body=spec)
+        for i, pose in enumerate(poses):
+            before = []
+            if tracked:
+                step = step_rng.normal(size=3)
+                step *= acc.TRACK_STEP_MM / np.linalg.norm(step)
+                before = [renderer.render(RobotPose(pose.centroid_mm - step, pose.direction))]
+            pair = renderer.render(pose)
+            # (the benchmark's paper tracker draws no random numbers: skipping it keeps the noise the same)
+            if only is not None and (seed, robot_id, i) not in only:
+                continue
+            tracker.reset()
+            for k, earlier in enumerate(before):
+                tracker.process(earlier.images["p"], earlier.images["q"], frame=2 * i + k, t=k / acc.TRACK_FPS)
+            _last.clear()
+            posture = tracker.process(pair.images["p"], pair.images["q"], frame=2 * i + len(before),
+                                      t=len(before) / acc.TRACK_FPS)
+            s = acc.score(posture.to_record(), pose, pair.head_mm, pair.tail_mm)
+            row = {"seed": seed, "robot": robot_id, "pose": i, "tracked": tracked, "ok": s["ok"],
+                   "ambiguous": s["ambiguous"], "axis_deg": s["axis_deg"], "centroid_mm": s["centroid_mm"],
+                   "tips_mm": s["tips_mm"], "reason": s["reason"], "search": tracker.last_search}
+            if posture.ok and posture.centroid_mm is not None:
+                err = np.asarray(posture.centroid_mm) - pose.centroid_mm
+                u = pose.direction
+                row["err"] = err.tolist()
+                row["err_along"] = float(err @ u)
+                row["err_across"] = float(np.linalg.norm(err - (err @ u) * u))
+                row["views"] = _views_errors(posture, pair)
+                if posture.direction is not None:
+                    row["axis_line_deg"] = acc._angle(np.asarray(posture.direction), u)
+                if _last.get("placed") is not None:
+                    row.update({k: _last[k] for k in ("sigma", "delta", "applied", "centroid_sigma_mm")})
+                    row["final_is_placed"] = bool(np.allclose(_last["placed"], posture.centroid_mm, atol=1e-9))
+            out.write(json.dumps(row) + "\n")
+            out.flush()
+
+
+def _weight(rule: str, sigma_deg: float) -> float:
+    if rule == "now":
+        return 1.0 if sigma_deg <= math.degrees(bk.AXIS_PLANES_MAX_SIGMA_RAD) else 0.0
+    if rule == "always":
+        return 1.0
+    if rule == "never":
+        return 0.0
+    kind, value = rule.split(":")
+    value = float(value)
+    if kind == "cut":
+        return 1.0 if sigma_deg <= value else 0.0
+    if kind == "inv":   # 1 / (1 + (sigma / s0)^2): a weight halved at s0
+        return 1.0 / (1.0 + (sigma_deg / value) ** 2)
+    raise ValueError(rule)
+
+
+RULES = ("now", "never", "always", "cut:3", "cut:4", "cut:6", "inv:3", "inv:5", "inv:8")
+BINS = (0.0, 0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 4.0, 6.0, 10.0, 90.0)
+
+
+def summary(paths: list[Path]) -> None:
+    rows = [json.loads(line) for p in paths for line in p.read_text().splitlines() if line.strip()]
+    rows = [r for r in rows if "sigma" in r and r["final_is_placed"]]
+    print(f"{len(rows)} frames placed by the Python path (all of sigma; tracked plain frames are not here)")
+    header = f"{'sigma deg':>10} {'n':>5} " + " ".join(f"{r:>8}" for r in RULES) + "   (centroid RMS mm; max)"
+    print(header)
+    for lo, hi in zip(BINS[:-1], BINS[1:]):
+        sel = [r for r in rows if lo <= math.degrees(r["sigma"]) < hi]
+        if not sel:
+            continue
+        cells, maxes = [], []
+        for rule in RULES:
+            errs = []
+            for r in sel:
+                sd = math.degrees(r["sigma"])
+                w_now = 1.0 if r["applied"] else 0.0
+                e = np.asarray(r["err"]) + (_weight(rule, sd) - w_now) * np.asarray(r["delta"])
+                errs.append(float(np.linalg.norm(e)))
+            cells.append(f"{math.sqrt(np.mean(np.square(errs))):8.3f}")
+            maxes.append(f"{max(errs):8.3f}")
+        print(f"{lo:4.1f}-{hi:<5.1f} {len(sel):5d} " + " ".join(cells))
+        print(f"{'max':>10} {'':5} " + " ".join(maxes))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--seeds", default="1-20")
+    ap.add_argument("--robots", default="1,2,3,4,5,6,7")
+    ap.add_argument("--tracked", action="store_true")
+    ap.add_argument("--poses-only", default=None, help="SEED:ROBOT:POSE,... (only these frames)")
+    ap.add_argument("--out", type=Path)
+    ap.add_argument("--summary", type=Path, nargs="+")
+    a = ap.parse_args()
+    if a.summary:
+        summary(a.summary)
+        return 0
+    only = None
+    if a.poses_only:
+        only = {tuple(int(x) for x in item.split(":")) for item in a.poses_only.split(",")}
+        seeds = sorted({s for s, _, _ in only})
+    else:
+        lo, _, hi = a.seeds.partition("-")
+        seeds = list(range(int(lo), int(hi or lo) + 1))
+    warm_up_all()
+    bk.place = _wrapped_place
+    with open(a.out, "a") as out:
+        for seed in seeds:
+            run(seed, [int(r) for r in a.robots.split(",")], a.tracked, only, out)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
