@@ -4,8 +4,7 @@ frame, at every axis sigma (a diagnostic; asserts nothing, changes no production
 The accuracy benchmark's frames (its poses, noise and, with ``--tracked``, its history frame) are recognised
 by the weighted estimator with the body prior, :func:`.body_kernels.place` wrapped: on each call the planes'
 shift ``delta`` (across the axis) is also computed with the sigma cut-off lifted. The final centroid at a
-planes weight ``w`` is then ``placed + (w - w_now) * delta`` (``w_now`` 1 where the cut-off let the
-correction through, 0 where not; the shift is across the axis, so the body's placement along it is unchanged
+planes weight ``w`` is then ``placed + (w - w_now) * delta`` (``w_now`` the weight the production rule gave it; the shift is across the axis, so the body's placement along it is unchanged
 to first order). Frames whose placement runs in the steady-state kernel (tracked plain frames) are not seen
 by the wrapper: they have no row (``placed`` is none).
 
@@ -52,7 +51,7 @@ def _wrapped_place(G, inp, body, out):
     sigma_c = rows[0, bk._E_CORE_S] if rows[0, bk._E_CORE_N] > 0 else 0.0
     bk._onto_axis_planes(G, free, sigma_c, c)
     _last.update(sigma=float(inp[bk.IN_AXIS_SIGMA]), delta=(c - inp[:3]).tolist(),
-                 applied=bool(inp[bk.IN_AXIS_SIGMA] <= bk.AXIS_PLANES_MAX_SIGMA_RAD),
+                 share=_weight("now", math.degrees(float(inp[bk.IN_AXIS_SIGMA]))),
                  placed=out[bk.OUT_CENTROID:bk.OUT_CENTROID + 3].tolist() if out[bk.OUT_PLACED] else None,
                  centroid_sigma_mm=float(sigma_c))
 
@@ -117,15 +116,17 @@ def run(seed: int, robot_ids: list[int], tracked: bool, only: set | None, out) -
                 if posture.direction is not None:
                     row["axis_line_deg"] = acc._angle(np.asarray(posture.direction), u)
                 if _last.get("placed") is not None:
-                    row.update({k: _last[k] for k in ("sigma", "delta", "applied", "centroid_sigma_mm")})
+                    row.update({k: _last[k] for k in ("sigma", "delta", "share", "centroid_sigma_mm")})
                     row["final_is_placed"] = bool(np.allclose(_last["placed"], posture.centroid_mm, atol=1e-9))
             out.write(json.dumps(row) + "\n")
             out.flush()
 
 
 def _weight(rule: str, sigma_deg: float) -> float:
-    if rule == "now":
-        return 1.0 if sigma_deg <= math.degrees(bk.AXIS_PLANES_MAX_SIGMA_RAD) else 0.0
+    if rule == "now":   # the production rule
+        return _weight(f"tail:{math.degrees(bk.AXIS_PLANES_FULL_SIGMA_RAD)}", sigma_deg)
+    if rule == "base":   # the rule at 3f0ba5c: a hard cut-off at 2.5 deg
+        return 1.0 if sigma_deg <= 2.5 else 0.0
     if rule == "always":
         return 1.0
     if rule == "never":
@@ -136,16 +137,44 @@ def _weight(rule: str, sigma_deg: float) -> float:
         return 1.0 if sigma_deg <= value else 0.0
     if kind == "inv":   # 1 / (1 + (sigma / s0)^2): a weight halved at s0
         return 1.0 / (1.0 + (sigma_deg / value) ** 2)
+    if kind == "tail":   # 1 up to value, then (value / sigma)^2
+        return min(1.0, (value / sigma_deg) ** 2) if sigma_deg > 0 else 1.0
+    if kind == "quart":   # 1 / (1 + (sigma / s0)^4): flat below s0, halved at it
+        return 1.0 / (1.0 + (sigma_deg / value) ** 4)
     raise ValueError(rule)
 
 
-RULES = ("now", "never", "always", "cut:3", "cut:4", "cut:6", "inv:3", "inv:5", "inv:8")
+RULES = ("base", "now", "never", "always", "cut:4", "cut:6", "inv:8", "tail:3", "tail:4", "tail:6", "quart:6", "quart:8",
+         "quart:10")
 BINS = (0.0, 0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 4.0, 6.0, 10.0, 90.0)
 
 
+def _moved(r: dict, rule: str) -> float | None:
+    """The frame's centroid error (mm) under a weight rule (unchanged where the wrapper did not see it)."""
+    if not r["ok"] or r["centroid_mm"] is None:
+        return None
+    if "sigma" not in r or not r["final_is_placed"]:
+        return r["centroid_mm"]
+    w_now = r["share"] if "share" in r else (1.0 if r["applied"] else 0.0)   # (rows written at 3f0ba5c: applied)
+    return float(np.linalg.norm(np.asarray(r["err"]) + (_weight(rule, math.degrees(r["sigma"])) - w_now)
+                                * np.asarray(r["delta"])))
+
+
 def summary(paths: list[Path]) -> None:
-    rows = [json.loads(line) for p in paths for line in p.read_text().splitlines() if line.strip()]
-    rows = [r for r in rows if "sigma" in r and r["final_is_placed"]]
+    every = [json.loads(line) for p in paths for line in p.read_text().splitlines() if line.strip()]
+    groups: dict = {}
+    for r in every:
+        groups.setdefault((r["seed"], r["robot"], r["tracked"]), []).append(r)
+    print(f"{len(groups)} robot-seed runs; per rule: runs with centroid RMS > 0.1 mm, and per robot the pooled RMS (mm)")
+    for rule in RULES:
+        misses, pooled = 0, {}
+        for (seed, robot, tracked), rs in groups.items():
+            errs = [e for e in (_moved(r, rule) for r in rs) if e is not None]
+            misses += bool(errs) and math.sqrt(np.mean(np.square(errs))) > 0.1
+            pooled.setdefault(robot, []).extend(errs)
+        print(f"{rule:>8}: {misses:3d} misses; " + " ".join(
+            f"r{k} {math.sqrt(np.mean(np.square(v))):.4f}" for k, v in sorted(pooled.items())))
+    rows = [r for r in every if "sigma" in r and r["final_is_placed"]]
     print(f"{len(rows)} frames placed by the Python path (all of sigma; tracked plain frames are not here)")
     header = f"{'sigma deg':>10} {'n':>5} " + " ".join(f"{r:>8}" for r in RULES) + "   (centroid RMS mm; max)"
     print(header)
@@ -158,7 +187,7 @@ def summary(paths: list[Path]) -> None:
             errs = []
             for r in sel:
                 sd = math.degrees(r["sigma"])
-                w_now = 1.0 if r["applied"] else 0.0
+                w_now = r["share"] if "share" in r else (1.0 if r["applied"] else 0.0)
                 e = np.asarray(r["err"]) + (_weight(rule, sd) - w_now) * np.asarray(r["delta"])
                 errs.append(float(np.linalg.norm(e)))
             cells.append(f"{math.sqrt(np.mean(np.square(errs))):8.3f}")
