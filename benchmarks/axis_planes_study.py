@@ -71,6 +71,12 @@ def _views_errors(posture, pair) -> dict:
     return res
 
 
+def _one_step_back(pose: RobotPose, step_rng: np.random.Generator) -> RobotPose:
+    """The benchmark's ``--tracked`` history frame (``--history 1``): the pose one step back along a random direction."""
+    step = step_rng.normal(size=3)
+    return RobotPose(pose.centroid_mm - step * (acc.TRACK_STEP_MM / np.linalg.norm(step)), pose.direction)
+
+
 def run(seed: int, robot_ids: list[int], tracked: bool, only: set | None, out) -> None:
     robots = load_robots()
     views = acc.biplane_views() if hasattr(acc, "biplane_views") else biplane_views()
@@ -87,11 +93,7 @@ def run(seed: int, robot_ids: list[int], tracked: bool, only: set | None, out) -
         step_rng = np.random.default_rng([seed, robot_id, 1])
         tracker = PostureTracker(cal, RecognitionSettings(estimator="weighted", dark_level=imaging.dark_level), body=spec)
         for i, pose in enumerate(poses):
-            before = []
-            if tracked:
-                step = step_rng.normal(size=3)
-                step *= acc.TRACK_STEP_MM / np.linalg.norm(step)
-                before = [renderer.render(RobotPose(pose.centroid_mm - step, pose.direction))]
+            before = [renderer.render(_one_step_back(pose, step_rng))] if tracked else []
             pair = renderer.render(pose)
             # (the benchmark's paper tracker draws no random numbers: skipping it keeps the noise the same)
             if only is not None and (seed, robot_id, i) not in only:
