@@ -1,24 +1,19 @@
-"""The axis planes' correction (:func:`.body_kernels._onto_axis_planes`) against the axis sigma it is gated by
-(:data:`.body_kernels.AXIS_PLANES_MAX_SIGMA_RAD`), on the accuracy benchmark's cold frames (a study; asserts
-nothing).
+"""What the axis-planes correction (:func:`.body_kernels._onto_axis_planes`) does to the centroid, frame by
+frame, at every axis sigma (a diagnostic; asserts nothing, changes no production code).
 
-Each frame (``accuracy.py``'s poses, renders and noise) is recognised twice by the default weighted tracker:
-with the gate as compiled, and with the correction made at every axis sigma (or up to ``--gate-deg``). Both
-run the placement's Python (``place.py_func``, ``_onto_axis_planes.py_func``: the gate read at run time), not
-its machine code (the same postures to the bit: dev seeds 1-20, robots 3 and 6, cold). Per bin
-of the frame's axis sigma this prints the frames, the centroid errors' sums of squares with and without the
-gate, and how many frames the correction made better and worse; ``--json`` writes every frame.
+The accuracy benchmark's frames (its poses, noise and, with ``--tracked``, its history frame) are recognised
+by the weighted estimator with the body prior, :func:`.body_kernels.place` wrapped: on each call the planes'
+shift ``delta`` (across the axis) is also computed with the sigma cut-off lifted. The final centroid at a
+planes weight ``w`` is then ``placed + (w - w_now) * delta`` (``w_now`` the weight the production rule gave it; the shift is across the axis, so the body's placement along it is unchanged
+to first order). Frames whose placement runs in the steady-state kernel (tracked plain frames) are not seen
+by the wrapper: they have no row (``placed`` is none).
 
-Measured (round 10, mass_rule off): on dev seeds 1-20, all robots, the correction above the 2.5 deg gate made 55
-of the 81 frames it moved between 2.5 and 10 deg better (26 worse) (centroid RMS over all ok frames at a gate of
-2.5 / 4 / 5 / 6 / 10 / none deg: 0.0527 / 0.0516 / 0.0515 / 0.0516 / 0.0516 / 0.0526 mm; robot 6 0.0896 ->
-0.0861 at 5, robot 3 0.0589 -> 0.0562; above 10 deg robot 4's 113 frames gain, robot 7 seed 14 pose 7 0.24 ->
-0.74 mm). On the standing seeds a 5 deg gate did not hold up: 0.0473 -> 0.0476 (17 frames better, 11 worse;
-robot 3 0.0501 -> 0.0516, 20261121 pose 27 0.153 -> 0.244; robot 6 0.0630 -> 0.0633), so the gate stays. Every
-moved frame is flagged already (axis sigma above settings.max_axis_sigma_deg).
+Per frame it writes (``--out``, JSON lines) the axis sigma, the centroid error vector (production), the
+shift, the truth's axis, the error along / across the true axis, each view's image-centroid error along and
+across its image axis (px), the axis error, and the flags; ``--summary`` prints bins of sigma over such files.
 
-Usage: ``python benchmarks/axis_planes_study.py --seeds 1,2,3 [--robots 3,6,7] [--poses N] [--gate-deg D]
-[--json F]``
+Usage: ``python benchmarks/axis_planes_study.py --seeds 1-20 [--robots 1,...] [--tracked] [--poses-only SEED:ROBOT:POSE,...]
+--out FILE`` and ``python benchmarks/axis_planes_study.py --summary FILE...``.
 """
 from __future__ import annotations
 
@@ -27,7 +22,6 @@ import json
 import math
 import sys
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -36,71 +30,198 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 import benchmarks.accuracy as acc  # noqa: E402
+from appliance.compiled import warm_up_all  # noqa: E402
 from appliance.recognition import PostureTracker, RecognitionSettings  # noqa: E402
 from appliance.recognition import body_kernels as bk  # noqa: E402
-from drivers.loopback.xray_render import BiplaneRenderer, RobotBody  # noqa: E402
+from appliance.robots import load_robots  # noqa: E402
+from drivers.loopback.scene_builders import S_BEND_CENTRELINE_MM, smooth_centreline  # noqa: E402
+from drivers.loopback.xray_render import BiplaneRenderer, ImagingSettings, RobotBody, RobotPose, VesselPhantom, biplane_views  # noqa: E402
 
-GATED = bk.AXIS_PLANES_MAX_SIGMA_RAD
-BINS_DEG = (0.0, 1.0, 1.5, 2.0, 2.5, 3.0, 4.0, 6.0, 10.0, 180.0)
-_seen: dict[str, float] = {}
+_last: dict = {}
 _place = bk.place
 
 
-def _place_py(G: np.ndarray, inp: np.ndarray, body: np.ndarray, out: np.ndarray) -> None:
-    _seen["axis_sigma"] = float(inp[bk.IN_AXIS_SIGMA])
-    _place.py_func(G, inp, body, out)
+def _wrapped_place(G, inp, body, out):
+    _place(G, inp, body, out)
+    free = inp.copy()
+    free[bk.IN_AXIS_SIGMA] = 0.0   # (the cut-off only: the shift itself does not use the sigma)
+    rows = np.empty((2, bk._E_SIZE))
+    bk._evidence(G, free, body, 0, rows[0])
+    c = np.empty(3)
+    sigma_c = rows[0, bk._E_CORE_S] if rows[0, bk._E_CORE_N] > 0 else 0.0
+    bk._onto_axis_planes(G, free, sigma_c, c)
+    _last.update(sigma=float(inp[bk.IN_AXIS_SIGMA]), delta=(c - inp[:3]).tolist(),
+                 share=_weight("now", math.degrees(float(inp[bk.IN_AXIS_SIGMA]))),
+                 placed=out[bk.OUT_CENTROID:bk.OUT_CENTROID + 3].tolist() if out[bk.OUT_PLACED] else None,
+                 centroid_sigma_mm=float(sigma_c))
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--seeds", required=True)
-    parser.add_argument("--robots", default="3,6,7")
-    parser.add_argument("--poses", type=int, default=30)
-    parser.add_argument("--json", type=Path)
-    parser.add_argument("--gate-deg", type=float, default=math.inf,
-                        help="the other arm's gate (deg; default: none, the correction at every sigma)")
-    args = parser.parse_args(argv)
-    gates = {"gated": GATED, "always": math.radians(args.gate_deg)}
-    bk.place = _place_py   # (body_prior calls bk.place; the Python place calls the module's _onto_axis_planes)
-    bk._onto_axis_planes = bk._onto_axis_planes.py_func
-    robots, views, calibration, phantom, imaging = acc.benchmark_scene()
-    rows: list[dict[str, Any]] = []
-    for seed in (int(s) for s in args.seeds.split(",")):
-        for robot_id in (int(r) for r in args.robots.split(",")):
-            spec = robots[robot_id]
-            renderer = BiplaneRenderer(views, RobotBody(spec.length_mm, spec.diameter_mm, spec.tip_angle_deg,
-                                                        spec.attenuation_per_mm), vessel=phantom, settings=imaging,
-                                       seed=seed + robot_id)
-            tracker = PostureTracker(calibration, RecognitionSettings(dark_level=imaging.dark_level), body=spec)
-            poses = acc.random_poses(np.random.default_rng([seed, robot_id]), args.poses)
-            for i, pose in enumerate(poses):
-                pair = renderer.render(pose)
-                row: dict[str, Any] = {"seed": seed, "robot": robot_id, "pose": i}
-                for name, gate in gates.items():
-                    bk.AXIS_PLANES_MAX_SIGMA_RAD = gate
-                    _seen.clear()
-                    tracker.reset()
-                    posture = tracker.process(pair.images["p"], pair.images["q"], frame=i, t=0.0)
-                    s = acc.score(posture.to_record(), pose, pair.head_mm, pair.tail_mm)
-                    row[name] = {key: s[key] for key in ("centroid_mm", "ambiguous", "axis_deg")}
-                    row["axis_sigma_deg"] = math.degrees(_seen["axis_sigma"]) if "axis_sigma" in _seen else None
-                rows.append(row)
-            print(f"seed {seed} robot {robot_id} done", flush=True)
-            if args.json:
-                args.json.write_text(json.dumps(rows))
-    bk.AXIS_PLANES_MAX_SIGMA_RAD = GATED
-    print(f"{'axis sigma deg':>15} {'frames':>6} {'SS gated':>9} {'SS always':>9} {'better':>6} {'worse':>6}")
-    for lo, hi in zip(BINS_DEG, BINS_DEG[1:]):
-        inside = [r for r in rows if r["axis_sigma_deg"] is not None and lo <= r["axis_sigma_deg"] < hi
-                  and r["gated"]["centroid_mm"] is not None and r["always"]["centroid_mm"] is not None]
-        if not inside:
+def _views_errors(posture, pair) -> dict:
+    res = {}
+    for name in "pq":
+        obs = posture.views.get(name)
+        if obs is None:
             continue
-        gated = [r["gated"]["centroid_mm"] for r in inside]
-        always = [r["always"]["centroid_mm"] for r in inside]
-        better = sum(1 for g, a in zip(gated, always) if a < g - 1e-9)
-        worse = sum(1 for g, a in zip(gated, always) if a > g + 1e-9)
-        print(f"{lo:6.1f} - {hi:6.1f} {len(inside):6d} {sum(g * g for g in gated):9.4f} "
-              f"{sum(a * a for a in always):9.4f} {better:6d} {worse:6d}")
+        t = pair.truth[name]
+        ax = np.asarray(obs.tips_px[0]) - np.asarray(obs.tips_px[1])
+        span = float(np.linalg.norm(ax))
+        ax = ax / span if span > 0 else ax
+        d = np.asarray(obs.centroid_px) - t.centroid_px
+        res[name] = {"along_px": float(d @ ax), "across_px": float(d @ np.array([-ax[1], ax[0]])), "span_px": span}
+    return res
+
+
+def _one_step_back(pose: RobotPose, step_rng: np.random.Generator) -> RobotPose:
+    """The benchmark's ``--tracked`` history frame (``--history 1``): the pose one step back along a random direction."""
+    step = step_rng.normal(size=3)
+    return RobotPose(pose.centroid_mm - step * (acc.TRACK_STEP_MM / np.linalg.norm(step)), pose.direction)
+
+
+def run(seed: int, robot_ids: list[int], tracked: bool, only: set | None, out) -> None:
+    robots = load_robots()
+    views = acc.biplane_views() if hasattr(acc, "biplane_views") else biplane_views()
+    cal = acc.true_calibration(views)
+    phantom = VesselPhantom(smooth_centreline(S_BEND_CENTRELINE_MM), acc.VESSEL_RADIUS_MM, acc.VESSEL_ATTENUATION_PER_MM)
+    imaging = ImagingSettings()
+    for robot_id in robot_ids:
+        if only is not None and not any(s == seed and r == robot_id for s, r, _ in only):
+            continue
+        spec = robots[robot_id]
+        poses = acc.random_poses(np.random.default_rng([seed, robot_id]), 30)
+        body = RobotBody(spec.length_mm, spec.diameter_mm, spec.tip_angle_deg, spec.attenuation_per_mm)
+        renderer = BiplaneRenderer(views, body, vessel=phantom, settings=imaging, seed=seed + robot_id)
+        step_rng = np.random.default_rng([seed, robot_id, 1])
+        tracker = PostureTracker(cal, RecognitionSettings(estimator="weighted", dark_level=imaging.dark_level), body=spec)
+        for i, pose in enumerate(poses):
+            before = [renderer.render(_one_step_back(pose, step_rng))] if tracked else []
+            pair = renderer.render(pose)
+            # (the benchmark's paper tracker draws no random numbers: skipping it keeps the noise the same)
+            if only is not None and (seed, robot_id, i) not in only:
+                continue
+            tracker.reset()
+            for k, earlier in enumerate(before):
+                tracker.process(earlier.images["p"], earlier.images["q"], frame=2 * i + k, t=k / acc.TRACK_FPS)
+            _last.clear()
+            posture = tracker.process(pair.images["p"], pair.images["q"], frame=2 * i + len(before),
+                                      t=len(before) / acc.TRACK_FPS)
+            s = acc.score(posture.to_record(), pose, pair.head_mm, pair.tail_mm)
+            row = {"seed": seed, "robot": robot_id, "pose": i, "tracked": tracked, "ok": s["ok"],
+                   "ambiguous": s["ambiguous"], "axis_deg": s["axis_deg"], "centroid_mm": s["centroid_mm"],
+                   "tips_mm": s["tips_mm"], "reason": s["reason"], "search": tracker.last_search}
+            if posture.ok and posture.centroid_mm is not None:
+                err = np.asarray(posture.centroid_mm) - pose.centroid_mm
+                u = pose.direction
+                row["err"] = err.tolist()
+                row["err_along"] = float(err @ u)
+                row["err_across"] = float(np.linalg.norm(err - (err @ u) * u))
+                row["views"] = _views_errors(posture, pair)
+                if posture.direction is not None:
+                    row["axis_line_deg"] = acc._angle(np.asarray(posture.direction), u)
+                if _last.get("placed") is not None:
+                    row.update({k: _last[k] for k in ("sigma", "delta", "share", "centroid_sigma_mm")})
+                    row["final_is_placed"] = bool(np.allclose(_last["placed"], posture.centroid_mm, atol=1e-9))
+            out.write(json.dumps(row) + "\n")
+            out.flush()
+
+
+def _weight(rule: str, sigma_deg: float) -> float:
+    if rule == "now":   # the production rule
+        return _weight(f"tail:{math.degrees(bk.AXIS_PLANES_FULL_SIGMA_RAD)}", sigma_deg)
+    if rule == "base":   # the rule at 3f0ba5c: a hard cut-off at 2.5 deg
+        return 1.0 if sigma_deg <= 2.5 else 0.0
+    if rule == "always":
+        return 1.0
+    if rule == "never":
+        return 0.0
+    kind, value = rule.split(":")
+    value = float(value)
+    if kind == "cut":
+        return 1.0 if sigma_deg <= value else 0.0
+    if kind == "inv":   # 1 / (1 + (sigma / s0)^2): a weight halved at s0
+        return 1.0 / (1.0 + (sigma_deg / value) ** 2)
+    if kind == "tail":   # 1 up to value, then (value / sigma)^2
+        return min(1.0, (value / sigma_deg) ** 2) if sigma_deg > 0 else 1.0
+    if kind == "quart":   # 1 / (1 + (sigma / s0)^4): flat below s0, halved at it
+        return 1.0 / (1.0 + (sigma_deg / value) ** 4)
+    raise ValueError(rule)
+
+
+RULES = ("base", "now", "never", "always", "cut:4", "cut:6", "inv:8", "tail:3", "tail:4", "tail:6", "quart:6", "quart:8",
+         "quart:10")
+BINS = (0.0, 0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 4.0, 6.0, 10.0, 90.0)
+
+
+def _moved(r: dict, rule: str) -> float | None:
+    """The frame's centroid error (mm) under a weight rule (unchanged where the wrapper did not see it)."""
+    if not r["ok"] or r["centroid_mm"] is None:
+        return None
+    if "sigma" not in r or not r["final_is_placed"]:
+        return r["centroid_mm"]
+    w_now = r["share"] if "share" in r else (1.0 if r["applied"] else 0.0)   # (rows written at 3f0ba5c: applied)
+    return float(np.linalg.norm(np.asarray(r["err"]) + (_weight(rule, math.degrees(r["sigma"])) - w_now)
+                                * np.asarray(r["delta"])))
+
+
+def summary(paths: list[Path]) -> None:
+    every = [json.loads(line) for p in paths for line in p.read_text().splitlines() if line.strip()]
+    groups: dict = {}
+    for r in every:
+        groups.setdefault((r["seed"], r["robot"], r["tracked"]), []).append(r)
+    print(f"{len(groups)} robot-seed runs; per rule: runs with centroid RMS > 0.1 mm, and per robot the pooled RMS (mm)")
+    for rule in RULES:
+        misses, pooled = 0, {}
+        for (seed, robot, tracked), rs in groups.items():
+            errs = [e for e in (_moved(r, rule) for r in rs) if e is not None]
+            misses += bool(errs) and math.sqrt(np.mean(np.square(errs))) > 0.1
+            pooled.setdefault(robot, []).extend(errs)
+        print(f"{rule:>8}: {misses:3d} misses; " + " ".join(
+            f"r{k} {math.sqrt(np.mean(np.square(v))):.4f}" for k, v in sorted(pooled.items())))
+    rows = [r for r in every if "sigma" in r and r["final_is_placed"]]
+    print(f"{len(rows)} frames placed by the Python path (all of sigma; tracked plain frames are not here)")
+    header = f"{'sigma deg':>10} {'n':>5} " + " ".join(f"{r:>8}" for r in RULES) + "   (centroid RMS mm; max)"
+    print(header)
+    for lo, hi in zip(BINS[:-1], BINS[1:]):
+        sel = [r for r in rows if lo <= math.degrees(r["sigma"]) < hi]
+        if not sel:
+            continue
+        cells, maxes = [], []
+        for rule in RULES:
+            errs = []
+            for r in sel:
+                sd = math.degrees(r["sigma"])
+                w_now = r["share"] if "share" in r else (1.0 if r["applied"] else 0.0)
+                e = np.asarray(r["err"]) + (_weight(rule, sd) - w_now) * np.asarray(r["delta"])
+                errs.append(float(np.linalg.norm(e)))
+            cells.append(f"{math.sqrt(np.mean(np.square(errs))):8.3f}")
+            maxes.append(f"{max(errs):8.3f}")
+        print(f"{lo:4.1f}-{hi:<5.1f} {len(sel):5d} " + " ".join(cells))
+        print(f"{'max':>10} {'':5} " + " ".join(maxes))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--seeds", default="1-20")
+    ap.add_argument("--robots", default="1,2,3,4,5,6,7")
+    ap.add_argument("--tracked", action="store_true")
+    ap.add_argument("--poses-only", default=None, help="SEED:ROBOT:POSE,... (only these frames)")
+    ap.add_argument("--out", type=Path)
+    ap.add_argument("--summary", type=Path, nargs="+")
+    a = ap.parse_args()
+    if a.summary:
+        summary(a.summary)
+        return 0
+    only = None
+    if a.poses_only:
+        only = {tuple(int(x) for x in item.split(":")) for item in a.poses_only.split(",")}
+        seeds = sorted({s for s, _, _ in only})
+    else:
+        lo, _, hi = a.seeds.partition("-")
+        seeds = list(range(int(lo), int(hi or lo) + 1))
+    warm_up_all()
+    bk.place = _wrapped_place
+    with open(a.out, "a") as out:
+        for seed in seeds:
+            run(seed, [int(r) for r in a.robots.split(",")], a.tracked, only, out)
     return 0
 
 

@@ -78,13 +78,17 @@ ORDER_CHI2 = 25.0
 #: Noise (px, across the image axis) of where a view's 2D axis line passes its centroid: the moment
 #: centroid's (:data:`CENTROID_SIGMA_PX`), which the line goes through.
 AXIS_LINE_SIGMA_PX = CENTROID_SIGMA_PX
-#: The axis planes move the centroid only where the 3D axis is known to this (its sigma, rad): beyond it
-#: a view's plane is as uncertain as its 2D axis, and on the dev seeds (robots 3 and 7) the planes' line
-#: moved such centroids as often away from the truth as towards it (robot 7 seed 14 pose 7, axis 11 deg
-#: uncertain: 0.33 -> 1.42 mm). It was chosen at ``settings.max_axis_sigma_deg``'s earlier default, 2.5 deg;
-#: that flag limit is now 1.5 deg, so frames flagged for an axis sigma of 1.5-2.5 deg are still moved (not
-#: re-measured at 1.5).
-AXIS_PLANES_MAX_SIGMA_RAD = math.radians(2.5)
+#: The axis planes move the centroid fully where the 3D axis is known to this (its sigma, rad), and by
+#: ``(AXIS_PLANES_FULL_SIGMA_RAD / sigma)^2`` of their shift beyond it: on a far more uncertain axis (a view
+#: nearly end-on) a view's plane is as uncertain as its 2D axis, and the planes' line moved such centroids as
+#: often away from the truth as towards it (robot 7 seed 14 pose 7, axis 11 deg uncertain: 0.24 -> 0.55 mm
+#: moved fully, 0.18 at this weight). Measured on dev seeds 1-20 (all robots, cold and tracked, 4901 frames
+#: placed by the general path, ``benchmarks/axis_planes_study.py``): where the sigma was 2.5-4 deg (125
+#: frames, over another structure: one view's moment centroid slid along its axis) the planes took the
+#: centroid RMS from 0.162 to 0.143 mm; at 4-10 deg (83) 0.126 -> 0.124; above 10 deg (234) moved fully
+#: 0.068 -> 0.077, at this weight 0.066. The earlier hard cut-off at 2.5 deg (then
+#: ``settings.max_axis_sigma_deg``'s default) left 11 robot-seed runs above 0.1 mm centroid RMS there, this 9.
+AXIS_PLANES_FULL_SIGMA_RAD = math.radians(4.0)
 
 # ``inp``: centroid (3), direction (3), then per view IN_VIEW_SIZE numbers from IN_VIEW, then the tail.
 IN_CENTROID = 0
@@ -328,8 +332,8 @@ def _onto_axis_planes(G: np.ndarray, inp: np.ndarray, centroid_sigma: float, c: 
     the least-squares one that puts the point in both planes, each plane's offset weighted by
     :data:`AXIS_LINE_SIGMA_PX` of its view, with ``|delta|`` held to the moment centroid's own sigma
     (``centroid_sigma``, mm): where the planes nearly coincide (an axis near an epipolar plane) the
-    component they leave open stays where the triangulation put it. Not where the axis is uncertain
-    (:data:`AXIS_PLANES_MAX_SIGMA_RAD`)."""
+    component they leave open stays where the triangulation put it. Less of the shift where the axis is
+    uncertain (:data:`AXIS_PLANES_FULL_SIGMA_RAD`)."""
     u = inp[IN_DIRECTION:IN_DIRECTION + 3]
     for i in range(3):
         c[i] = inp[IN_CENTROID + i]
@@ -339,8 +343,11 @@ def _onto_axis_planes(G: np.ndarray, inp: np.ndarray, centroid_sigma: float, c: 
     else:
         a0, a1, a2 = -u[2], 0.0, u[0]
     na = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
-    if not na > 0 or not centroid_sigma > 0 or not inp[IN_AXIS_SIGMA] <= AXIS_PLANES_MAX_SIGMA_RAD:
+    axis_sigma = inp[IN_AXIS_SIGMA]
+    if not na > 0 or not centroid_sigma > 0 or not axis_sigma >= 0.0:
         return
+    # (1.0 up to the full sigma: those frames' shift is the unweighted one, to the bit)
+    share = 1.0 if axis_sigma <= AXIS_PLANES_FULL_SIGMA_RAD else (AXIS_PLANES_FULL_SIGMA_RAD / axis_sigma) ** 2
     a0, a1, a2 = a0 / na, a1 / na, a2 / na
     w0, w1, w2 = u[1] * a2 - u[2] * a1, u[2] * a0 - u[0] * a2, u[0] * a1 - u[1] * a0
     prior = 1.0 / (centroid_sigma * centroid_sigma)
@@ -378,8 +385,8 @@ def _onto_axis_planes(G: np.ndarray, inp: np.ndarray, centroid_sigma: float, c: 
     det = m00 * m11 - m01 * m01
     if not det > 0:
         return
-    da = (m11 * r0 - m01 * r1) / det
-    dw = (m00 * r1 - m01 * r0) / det
+    da = share * ((m11 * r0 - m01 * r1) / det)
+    dw = share * ((m00 * r1 - m01 * r0) / det)
     c[0] += da * a0 + dw * w0
     c[1] += da * a1 + dw * w1
     c[2] += da * a2 + dw * w2
