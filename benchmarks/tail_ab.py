@@ -1,6 +1,7 @@
 """In-process A/B of the steady state's not-plain frames (issue 8's p99): the tracker as it is against the same
 tracker with :mod:`.head_by_body`'s numpy definitions (``axial_rows_reference``, ``chi2_of_reference``) in place
-of the compiled :mod:`.head_kernels`, on ``appliance bench``'s scene.
+of the compiled :mod:`.head_kernels`, and :mod:`.axis_by_length`'s (``_fit_centroids_reference``) in place of
+:mod:`.axis_kernels`' fits (the rays of its measurements are compiled in both), on ``appliance bench``'s scene.
 
 Renders the bench's frames (its scene, robot and speed) once, then runs two trackers over them, alternating which
 goes first per frame, each frame copied into the host's buffers before each call (as the bench does: every call
@@ -30,17 +31,17 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from appliance.commands.bench import RenderedScene  # noqa: E402
 from appliance.compiled import warm_up_all  # noqa: E402
-from appliance.recognition import body_corrections, head_by_body  # noqa: E402
+from appliance.recognition import axis_by_length, body_corrections, head_by_body, head_kernels  # noqa: E402
 from appliance.recognition.tracker import PostureTracker  # noqa: E402
 
 cpu_ns = time.thread_time_ns
-COMPILED = (head_by_body.axial_rows, head_by_body.chi2_of)
-NUMPY = (head_by_body.axial_rows_reference, head_by_body.chi2_of_reference)
+COMPILED = (head_by_body.axial_rows, head_by_body.chi2_of, axis_by_length._fit_centroids)
+NUMPY = (head_by_body.axial_rows_reference, head_by_body.chi2_of_reference, axis_by_length._fit_centroids_reference)
 
 
-def _use(functions: tuple[Any, Any]) -> None:
-    """Point the tracker's head-by-body correction at these rows and chi-square."""
-    body_corrections.axial_rows, body_corrections.chi2_of = functions
+def _use(functions: tuple[Any, Any, Any]) -> None:
+    """Point the tracker's head-by-body correction at these rows and chi-square, the plane scan at these fits."""
+    body_corrections.axial_rows, body_corrections.chi2_of, axis_by_length._fit_centroids = functions
 
 
 def _plain_flags(tracker: PostureTracker) -> list[bool]:
@@ -92,6 +93,7 @@ def main() -> int:
     parser.add_argument("--top", type=int, default=30)
     args = parser.parse_args()
     warm_up_all()
+    compiled_after_warm_up = (len(head_kernels.axial_rows.signatures), len(head_kernels.chi2_of.signatures))
     scene = RenderedScene(1024, args.robot)
     frames = []
     for _, (p, q) in zip(range(args.frames), scene.pairs()):
@@ -129,9 +131,17 @@ def main() -> int:
                 cpu[name][n] = spent if not flags[name][-1] else -spent   # (negative: a plain frame)
         if _fields(postures["numpy"]) != _fields(postures["compiled"]):
             differ.append(n)
+            a, b = postures["numpy"], postures["compiled"]
+            gaps = {key: float(np.max(np.abs(np.subtract(getattr(a, key), getattr(b, key)))))
+                    for key in ("centroid_mm", "direction", "tips_mm", "length_mm")
+                    if getattr(a, key) is not None and getattr(b, key) is not None}
+            print(f"frame {n}: the postures differ; largest differences {gaps}; ok {a.ok}/{b.ok}, ambiguous "
+                  f"{a.ambiguous}/{b.ambiguous}, head {a.head_identified}/{b.head_identified}")
     _use(COMPILED)
     print(f"{len(frames)} frames of appliance bench's scene (robot {args.robot}); postures that differ between "
-          f"the two: {len(differ)} {differ[:20]}")
+          f"the two: {len(differ)} {differ[:20]}; head_kernels' signatures after the warm-up "
+          f"{compiled_after_warm_up}, at the end "
+          f"{(len(head_kernels.axial_rows.signatures), len(head_kernels.chi2_of.signatures))}")
     if stats is not None:
         out = io.StringIO()
         stats.stream = out  # type: ignore[attr-defined]

@@ -45,7 +45,7 @@ from appliance.recognition.reconstruction import ray_line_parameters
 #: the centroid) a measurement moves over another structure, as a standard deviation (dev seeds 1-20).
 CLUTTER_FRACTION = 0.5
 #: Each view's offset in the packed calibration (:mod:`appliance.geometry_kernels`).
-_VIEW_OFFSETS = {"p": 0, "q": VIEW_SIZE}
+VIEW_OFFSETS = {"p": 0, "q": VIEW_SIZE}
 
 
 def _end_px(feat: Features2D, end: int, conical: bool) -> np.ndarray:
@@ -64,7 +64,7 @@ def axial_rows(calibration: Calibration, centroid: np.ndarray, direction: np.nda
     :func:`axial_rows_reference` is its numpy definition)."""
     views = np.empty((len(feats), hk.VIEW_ROW))
     for i, (name, feat) in enumerate(feats.items()):
-        views[i] = (_VIEW_OFFSETS[name], feat.centroid[0], feat.centroid[1], feat.axis[0], feat.axis[1],
+        views[i] = (VIEW_OFFSETS[name], feat.centroid[0], feat.centroid[1], feat.axis[0], feat.axis[1],
                     feat.tip_distance(0, True), feat.tip_distance(0, False), feat.tip_distance(1, True),
                     feat.tip_distance(1, False), clutter.get(name, 0.0))
     to_tail = body.centroid_from_tail_mm
