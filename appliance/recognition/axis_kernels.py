@@ -16,6 +16,7 @@ import numpy as np
 
 from appliance.compiled import kernel, register_warm_up
 from appliance.geometry_kernels import VIEW_SIZE, ideal_pixel, ray_direction
+from appliance.recognition.head_kernels import warm_up_calibration
 
 
 @kernel
@@ -125,13 +126,7 @@ def fit_centroids(directions: np.ndarray, origins: np.ndarray, rays: np.ndarray,
 
 def warm_up() -> None:
     """Compile both kernels for the calls :mod:`.axis_by_length` makes (the read-only packed calibration)."""
-    G = np.zeros(2 * VIEW_SIZE + 10)
-    for o in (0, VIEW_SIZE):
-        G[o] = G[o + 4] = G[o + 8] = 1000.0          # K
-        G[o + 9] = G[o + 13] = 1e-3                  # K^-1
-        G[o + 17] = 1.0
-        G[o + 18] = G[o + 22] = G[o + 26] = 1.0      # R
-    G.setflags(write=False)   # (as the calibration's packed array: a read-only array is another type to numba)
+    G = warm_up_calibration()
     rays = np.empty((6, 3))
     pixels = np.array([[10.0, 0.0], [-10.0, 0.0], [0.0, 0.0]])
     ray_directions(G, 0, pixels, rays[:3])

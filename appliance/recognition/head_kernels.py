@@ -21,7 +21,7 @@ import math
 import numpy as np
 
 from appliance.compiled import kernel, register_warm_up
-from appliance.geometry_kernels import _SRC, VIEW_SIZE
+from appliance.geometry_kernels import _SRC, VIEW_SIZE, pack_view, pack_views
 from appliance.recognition import body_kernels as bk
 from appliance.recognition.reconstruction_kernels import _ray_line_b
 
@@ -121,17 +121,18 @@ def chi2_of(rows: np.ndarray, cap: float) -> float:
     return best
 
 
+def warm_up_calibration() -> np.ndarray:
+    """A packed calibration (read-only, as :attr:`appliance.geometry.Calibration.packed`: a read-only array is
+    another type to numba) for the warm-ups: two views 500 mm from the origin, without distortion."""
+    K = np.array([[1000.0, 0.0, 500.0], [0.0, 1000.0, 500.0], [0.0, 0.0, 1.0]])
+    view = pack_view(K, np.linalg.inv(K), np.eye(3), np.array([0.0, 0.0, 500.0]), np.zeros(5))
+    return pack_views(view, view, np.zeros((3, 3)), 1.0)
+
+
 def warm_up() -> None:
     """Compile both kernels for the calls :mod:`.head_by_body` makes (two views, the read-only packed calibration),
     so that the first frame weighing a head by the body compiles nothing inside the loop's window."""
-    G = np.zeros(2 * VIEW_SIZE + 10)
-    for o in (0, VIEW_SIZE):
-        G[o] = G[o + 4] = G[o + 8] = 1000.0          # K
-        G[o + 9] = G[o + 13] = 1e-3                  # K^-1
-        G[o + 17] = 1.0
-        G[o + 18] = G[o + 22] = G[o + 26] = 1.0      # R
-        G[o + _SRC + 2] = -500.0
-    G.setflags(write=False)   # (as the calibration's packed array: a read-only array is another type to numba)
+    G = warm_up_calibration()
     views = np.zeros((2, VIEW_ROW))
     views[1, VIEW_OFFSET] = VIEW_SIZE
     views[:, VIEW_AXIS] = 1.0
