@@ -168,12 +168,19 @@ def _instrument() -> None:
 
     roi_search._compiled = view
     for name in ("objects", "body_inputs", "sigmas"):
+        if not hasattr(steady_state.SteadyPair, name):
+            continue   # (a step a later round folded away)
         setattr(steady_state.SteadyPair, name, _step(f"pair.{name}", getattr(steady_state.SteadyPair, name)))
     for name in ("_search_rois", "_search_full", "_head_by_clean_view", "_head_in_doubt", "_posture", "_placed",
-                 "_remember", "_remember_plain", "_centroid_mismatch_px"):
+                 "_remember", "_remember_plain", "_centroid_mismatch_px", "_head_by_body", "_mirror_by_body",
+                 "_axis_by_length", "_rejection"):
+        if not hasattr(T, name):
+            continue
         setattr(T, name, _step(name, getattr(T, name)))
     for name in ("reconstruct", "reconstruct_from_front", "not_robot_like", "cut_by_edge", "off_its_images",
                  "at_odds_with_track", "declutter", "place_body", "place_plain_body", "end_clutter", "ends_used"):
+        if not hasattr(tracker_module, name):
+            continue
         setattr(tracker_module, name, _step(name, getattr(tracker_module, name)))
 
     collecting: dict[str, int] = {}

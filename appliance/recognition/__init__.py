@@ -10,9 +10,10 @@ The pipeline, one module per stage (each stage is a plain function, so it can be
 * :mod:`.reconstruction` - centroid, axis, tips, head, length (:func:`reconstruct`);
 * :mod:`.body_prior` - the robot's known body placed on the axis: centroid and tips (:func:`place_body`);
 * :mod:`.head_by_body` - the head told by the known body's shape where the ramps do not tell it (:func:`chi2_of`
-  the body's fit with its apex at either end);
+  the body's fit with its apex at either end; compiled in :mod:`.head_kernels`);
 * :mod:`.body_corrections` - a reconstruction corrected by the known body: the head, an unresolved mirror
-  ambiguity, an axis in an epipolar plane (:func:`.body_corrections.head_by_body` and the others);
+  ambiguity, an axis in an epipolar plane (:func:`.body_corrections.head_by_body` and the others; the plane
+  scan's fits compiled in :mod:`.axis_kernels`);
 * :mod:`.roi_search` - the tracked robot's blob and features in one view's ROI, one compiled call
   (:mod:`.roi_kernels`) giving what segment + gate + features give;
 * :mod:`.tracker` - ROI tracking over frames (:class:`PostureTracker`), producing :class:`Posture` records.

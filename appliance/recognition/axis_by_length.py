@@ -26,10 +26,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from appliance.geometry import Calibration
+from appliance.recognition import axis_kernels as ak
 from appliance.recognition import body_kernels as bk
 from appliance.recognition.body_prior import BodyModel
 from appliance.recognition.features import Features2D
-from appliance.recognition.head_by_body import CLUTTER_FRACTION
+from appliance.recognition.head_by_body import VIEW_OFFSETS, CLUTTER_FRACTION
 
 #: The directions tried in the plane: this far (deg) either side of the reconstruction's, in coarse steps, then
 #: refined around the best.
@@ -58,39 +59,50 @@ class PlaneFit:
 
 def _measurements(calibration: Calibration, centroid: np.ndarray, feats: dict[str, Features2D],
                   head_index: dict[str, int], clutter: dict[str, float], body: BodyModel
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Per measurement (each view's apex, tail and moment centroid): the ray's origin and unit direction, the
-    body point's offset along the axis from the moment centroid (mm), the projector across the ray, and the
-    weight (1 / sigma^2, sigma in mm at the body)."""
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per measurement (each view's apex, tail and moment centroid): the ray's origin and unit direction (the
+    compiled :func:`.axis_kernels.ray_directions`), the body point's offset along the axis from the moment
+    centroid (mm), and the weight (1 / sigma^2, sigma in mm at the body)."""
     to_head = body.length_mm - body.centroid_from_tail_mm
-    origins, rays, offsets, sigmas = [], [], [], []
-    for name, feat in feats.items():
+    packed = calibration.packed
+    origins = np.empty((3 * len(feats), 3))
+    rays = np.empty((3 * len(feats), 3))
+    offsets, sigmas = [], []
+    for i, (name, feat) in enumerate(feats.items()):
         view = calibration.views[name]
         head = head_index[name]
         sign_head = 1.0 if head == 0 else -1.0
         apex = feat.centroid + sign_head * feat.tip_distance(head, True) * feat.axis
         tail = feat.centroid - sign_head * feat.tip_distance(1 - head, False) * feat.axis
-        o, r = view.rays(np.vstack([apex, tail, feat.centroid]))
+        ak.ray_directions(packed, VIEW_OFFSETS[name], np.vstack([apex, tail, feat.centroid]), rays[3 * i:3 * i + 3])
+        origins[3 * i:3 * i + 3] = view.source_mm
         mm_per_px = float(np.linalg.norm(view.source_mm - centroid)) / float(view.K[0, 0])
         level = max(clutter.get(name, 0.0), 0.0)
         clean = (bk.APEX_SIGMA_PX * mm_per_px + bk.APEX_SIGMA_PER_CONE_PX * body.cone_length_mm,
                  bk.FLAT_END_SIGMA_PX * mm_per_px, bk.CENTROID_SIGMA_PX * mm_per_px)
         # (over another structure a moment centroid slides along the axis by a fraction of the body's length)
         near = (body.cone_length_mm, body.diameter_mm, body.length_mm)
-        origins.append(o)
-        rays.append(r)
         offsets.extend((to_head, -body.centroid_from_tail_mm, 0.0))
         sigmas.extend(math.hypot(c, CLUTTER_FRACTION * level * n) for c, n in zip(clean, near))
-    o, r = np.vstack(origins), np.vstack(rays)
-    across = np.eye(3)[None, :, :] - r[:, :, None] * r[:, None, :]
-    return o, r, np.asarray(offsets), across, 1.0 / np.square(sigmas)
+    return origins, rays, np.asarray(offsets), 1.0 / np.square(sigmas)
 
 
-def _fit_centroids(directions: np.ndarray, origins: np.ndarray, offsets: np.ndarray, across: np.ndarray,
+def _fit_centroids(directions: np.ndarray, origins: np.ndarray, rays: np.ndarray, offsets: np.ndarray,
                    weights: np.ndarray, cap: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_fit_centroids_reference` compiled (:func:`.axis_kernels.fit_centroids`)."""
+    centroids = np.empty((len(directions), 3))
+    chi2 = np.empty(len(directions))
+    ak.fit_centroids(np.ascontiguousarray(directions), origins, rays, offsets, weights, float(cap), TRIM_ROUNDS,
+                     centroids, chi2)
+    return centroids, chi2
+
+
+def _fit_centroids_reference(directions: np.ndarray, origins: np.ndarray, rays: np.ndarray, offsets: np.ndarray,
+                             weights: np.ndarray, cap: float) -> tuple[np.ndarray, np.ndarray]:
     """Per direction (rows of ``directions``), the moment centroid that best puts the body's points on their
     rays, and the capped chi-square there: a weighted least-squares, refitted without the measurements beyond
-    ``cap`` sigma (all directions at once: the scan's cost is numpy's per-call overhead)."""
+    ``cap`` sigma (all directions at once; the numpy definition of :func:`_fit_centroids`)."""
+    across = np.eye(3)[None, :, :] - rays[:, :, None] * rays[:, None, :]
     targets = origins[None, :, :] - offsets[None, :, None] * directions[:, None, :]
     use = np.ones((len(directions), len(weights)))
     best_chi2 = np.full(len(directions), np.inf)
@@ -134,8 +146,7 @@ class PlaneScan:
     def _at(self, angles_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         a = np.radians(angles_deg)
         d = np.cos(a)[:, None] * self._d0[None, :] + np.sin(a)[:, None] * self._side[None, :]
-        o, _, offsets, across, weights = self._measured
-        c, chi2 = _fit_centroids(d, o, offsets, across, weights, self._cap)
+        c, chi2 = _fit_centroids(d, *self._measured, self._cap)
         return d, c, chi2
 
     def best(self) -> PlaneFit:
@@ -150,4 +161,4 @@ class PlaneScan:
         _, _, beside = self._at(np.array([angle - CURVATURE_STEP_DEG, angle + CURVATURE_STEP_DEG]))
         rise = float(beside.sum()) - 2.0 * float(chi2[k])
         sigma = CURVATURE_STEP_DEG * math.sqrt(2.0 / rise) if rise > 0 else math.inf
-        return PlaneFit(d[k], c[k], float(chi2[k]), self.chi2_at_start, len(self._measured[4]), sigma)
+        return PlaneFit(d[k], c[k], float(chi2[k]), self.chi2_at_start, len(self._measured[3]), sigma)

@@ -34,7 +34,9 @@ import numpy as np
 
 from appliance.compiled import register_warm_up
 from appliance.geometry import Calibration
+from appliance.geometry_kernels import VIEW_SIZE
 from appliance.recognition import body_kernels as bk
+from appliance.recognition import head_kernels as hk
 from appliance.recognition.body_prior import BodyModel
 from appliance.recognition.features import Features2D
 from appliance.recognition.reconstruction import ray_line_parameters
@@ -42,6 +44,8 @@ from appliance.recognition.reconstruction import ray_line_parameters
 #: How far (as a fraction of the view's clutter times the cone's length, or the diameter for a flat end and
 #: the centroid) a measurement moves over another structure, as a standard deviation (dev seeds 1-20).
 CLUTTER_FRACTION = 0.5
+#: Each view's offset in the packed calibration (:mod:`appliance.geometry_kernels`).
+VIEW_OFFSETS = {"p": 0, "q": VIEW_SIZE}
 
 
 def _end_px(feat: Features2D, end: int, conical: bool) -> np.ndarray:
@@ -52,11 +56,32 @@ def _end_px(feat: Features2D, end: int, conical: bool) -> np.ndarray:
 
 def axial_rows(calibration: Calibration, centroid: np.ndarray, direction: np.ndarray,
                feats: dict[str, Features2D], clutter: dict[str, float], body: BodyModel
-               ) -> tuple[list[tuple[float, float, float]], list[tuple[float, float, float]], dict[str, int]]:
+               ) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
     """The body's place along the axis ``centroid + b direction`` as each measurement gives it, with its head
-    at the ``+direction`` end, then at the ``-direction`` end: per measurement ``(b, clean sigma, clutter
+    at the ``+direction`` end, then at the ``-direction`` end: per measurement a row ``(b, clean sigma, clutter
     sigma)`` (mm), each view's apex and tail, then the moment centroid (``b`` 0); and per view which of its
-    2D ends (0: +axis, 1: -axis) is the ``+direction`` end. One ray-axis call per view for all its ends."""
+    2D ends (0: +axis, 1: -axis) is the ``+direction`` end. One compiled call (:func:`.head_kernels.axial_rows`;
+    :func:`axial_rows_reference` is its numpy definition)."""
+    views = np.empty((len(feats), hk.VIEW_ROW))
+    for i, (name, feat) in enumerate(feats.items()):
+        views[i] = (VIEW_OFFSETS[name], feat.centroid[0], feat.centroid[1], feat.axis[0], feat.axis[1],
+                    feat.tip_distance(0, True), feat.tip_distance(0, False), feat.tip_distance(1, True),
+                    feat.tip_distance(1, False), clutter.get(name, 0.0))
+    to_tail = body.centroid_from_tail_mm
+    shape = np.array([body.length_mm - to_tail, to_tail, body.cone_length_mm, body.diameter_mm])
+    rows = np.empty((2, 2 * len(feats) + 1, 3))
+    plus = np.empty(len(feats), dtype=np.int64)
+    hk.axial_rows(calibration.packed, views, np.ascontiguousarray(centroid, dtype=np.float64),
+                  np.ascontiguousarray(direction, dtype=np.float64), shape, CLUTTER_FRACTION, rows, plus)
+    return rows[0], rows[1], {name: int(plus[i]) for i, name in enumerate(feats)}
+
+
+def axial_rows_reference(calibration: Calibration, centroid: np.ndarray, direction: np.ndarray,
+                         feats: dict[str, Features2D], clutter: dict[str, float], body: BodyModel
+                         ) -> tuple[list[tuple[float, float, float]], list[tuple[float, float, float]],
+                                    dict[str, int]]:
+    """:func:`axial_rows` in numpy (its readable definition; the tests compare the two). One ray-axis call per
+    view for all its ends."""
     to_head = body.length_mm - body.centroid_from_tail_mm
     to_tail = body.centroid_from_tail_mm
     rows: tuple[list[tuple[float, float, float]], list[tuple[float, float, float]]] = ([], [])
@@ -92,7 +117,12 @@ def axial_rows(calibration: Calibration, centroid: np.ndarray, direction: np.nda
     return rows[0], rows[1], plus_index
 
 
-def chi2_of(rows: list[tuple[float, float, float]], cap: float) -> float:
+def chi2_of(rows: np.ndarray | list[tuple[float, float, float]], cap: float) -> float:
+    """:func:`chi2_of_reference` compiled (:func:`.head_kernels.chi2_of`), on :func:`axial_rows`' rows."""
+    return float(hk.chi2_of(np.asarray(rows, dtype=np.float64), float(cap)))
+
+
+def chi2_of_reference(rows: list[tuple[float, float, float]], cap: float) -> float:
     """The chi-square of the body's best place along the axis, each measurement's term capped at ``cap``
     squared: an end lost to or run on into another structure is an outlier, not a Gaussian error, and
     must neither decide alone nor pull the place. The best place is the inverse-variance mean of the
@@ -104,8 +134,8 @@ def chi2_of(rows: list[tuple[float, float, float]], cap: float) -> float:
 
 
 def warm_up() -> None:
-    """Compile :func:`.body_kernels._end_sigma_mm` for the call :func:`axial_rows` makes from Python (a head flag,
-    five floats). The kernels that call it inline it, so their warm-ups leave it without a Python signature,
+    """Compile :func:`.body_kernels._end_sigma_mm` for the call :func:`axial_rows_reference` makes from Python (a
+    head flag, five floats). The kernels that call it inline it, so their warm-ups leave it without a Python signature,
     and the first frame that weighs a head by the body would load it (~10 ms from the cache, seconds cold)
     inside the loop's window."""
     for is_head in (True, False):

@@ -15,6 +15,7 @@ import pytest
 
 from appliance.geometry import Calibration
 from appliance.recognition import PostureTracker, RecognitionSettings
+from appliance.recognition import axis_by_length
 from appliance.recognition.axis_by_length import PlaneScan
 from appliance.recognition.body_prior import BodyModel
 from appliance.recognition.correspondence import CASE_A, Pairing
@@ -81,6 +82,33 @@ def test_scan_finds_the_direction_a_run_on_head_turned(calibration: Calibration,
     assert fit.chi2 <= CAP * CAP + 1.0
     assert scan.chi2_at_start - fit.chi2 > RecognitionSettings().plane_refit_chi2
     assert 0.0 < fit.sigma_deg < 2.0
+
+
+def test_the_compiled_fits_are_the_numpy_definition(calibration: Calibration, robot6: BodyModel) -> None:
+    # The scan's compiled fits (the tracker's path) against the numpy definition, over the directions a scan
+    # tries (the run-on head trimmed in some, not in others): the same chi-squares and centroids to rounding
+    # (another summation order and a 3x3 elimination for LAPACK's); the warm-ups compiled the calls.
+    from appliance.compiled import warm_up_all
+    from appliance.recognition import axis_kernels
+
+    warm_up_all()
+    compiled = (len(axis_kernels.ray_directions.signatures), len(axis_kernels.fit_centroids.signatures))
+    c = np.array([3.0, -2.0, 1.0])
+    truth, normal = _in_epipolar_plane(calibration, c, 20.0)
+    feats = _features(calibration, robot6, c, truth, {"p": 50.0})
+    measured = axis_by_length._measurements(calibration, c, feats, {"p": 0, "q": 0}, {"p": 0.2, "q": 0.0}, robot6)
+    origins, rays = measured[0], measured[1]
+    for k, name in enumerate(("p", "q")):
+        view_origins, view_rays = calibration.views[name].rays(np.vstack([feats[name].tips, feats[name].centroid]))
+        np.testing.assert_allclose(rays[3 * k:3 * k + 3], view_rays, rtol=0, atol=1e-14)
+        np.testing.assert_array_equal(origins[3 * k:3 * k + 3], view_origins)
+    directions = np.array([_turned(truth, normal, a) for a in np.arange(-30.0, 30.1, 0.5)])
+    centroids, chi2 = axis_by_length._fit_centroids(directions, *measured, CAP)
+    ref_centroids, ref_chi2 = axis_by_length._fit_centroids_reference(directions, *measured, CAP)
+    np.testing.assert_allclose(chi2, ref_chi2, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(centroids, ref_centroids, rtol=0, atol=1e-9)
+    assert int(np.argmin(chi2)) == int(np.argmin(ref_chi2))
+    assert (len(axis_kernels.ray_directions.signatures), len(axis_kernels.fit_centroids.signatures)) == compiled
 
 
 def test_consistent_direction_fits_at_the_start(calibration: Calibration, robot6: BodyModel) -> None:

@@ -15,7 +15,7 @@ from appliance.geometry import Calibration, View
 from appliance.recognition import PostureTracker, RecognitionSettings, detect, log_background
 from appliance.recognition.body_prior import BodyModel
 from appliance.recognition.features import Features2D
-from appliance.recognition.head_by_body import chi2_of
+from appliance.recognition.head_by_body import axial_rows, axial_rows_reference, chi2_of, chi2_of_reference
 from appliance.recognition.reconstruction import reconstruct
 from appliance.recognition.tracker import head_claim_confidence
 from appliance.recognition.segmentation import Blob, Roi
@@ -419,8 +419,41 @@ def test_a_measurement_far_off_counts_no_more_than_the_cap() -> None:
     # Two measurements agree, one is 10 sigmas off: the place is where the two are, and the outlier adds
     # the cap squared, not 100 (nor does it pull the place towards itself).
     rows = [(0.0, 1.0, 0.0), (0.0, 1.0, 0.0), (10.0, 1.0, 0.0)]
-    assert chi2_of(rows, 4.0) == pytest.approx(16.0)
-    assert chi2_of(rows, 100.0) == pytest.approx(2 * (10.0 / 3) ** 2 + (20.0 / 3) ** 2)
+    for chi2 in (chi2_of, chi2_of_reference):
+        assert chi2(rows, 4.0) == pytest.approx(16.0)
+        assert chi2(rows, 100.0) == pytest.approx(2 * (10.0 / 3) ** 2 + (20.0 / 3) ** 2)
+
+
+@pytest.mark.parametrize("sign, cone_at_plus, clutter_p", [(1.0, True, 0.0), (-1.0, True, 0.3), (1.0, False, 0.1)])
+def test_the_compiled_axial_rows_are_the_numpy_definitions(
+        scene: tuple[Calibration, BiplaneRenderer], robot3: BodyModel, sign: float, cone_at_plus: bool,
+        clutter_p: float) -> None:
+    # The compiled rows and chi-squares (the tracker's path) against head_by_body's numpy definitions: the same
+    # rows to rounding (the rays summed in another order), the same +direction ends, the same chi-squares; and
+    # the warm-ups compiled the calls the tracker makes (none compiles inside the loop's window).
+    from appliance.compiled import warm_up_all
+    from appliance.recognition import head_kernels
+
+    warm_up_all()
+    compiled = (len(head_kernels.axial_rows.signatures), len(head_kernels.chi2_of.signatures))
+    calibration, _ = scene
+    direction = sign * np.array([0.6, 0.3, 0.74]) / np.linalg.norm([0.6, 0.3, 0.74])
+    centre = np.array([2.0, -1.0, 3.0])
+    feats = _body_features(calibration, centre, direction, robot3, {"p": cone_at_plus, "q": True})
+    clutter = {"p": clutter_p, "q": 0.05}
+    # (an axis a little off the truth, as a reconstruction's: the rows are not all at their offsets)
+    off = direction + np.array([0.01, -0.02, 0.0])
+    off /= np.linalg.norm(off)
+    plus, minus, plus_index = axial_rows(calibration, centre + 0.1, off, feats, clutter, robot3)
+    ref_plus, ref_minus, ref_index = axial_rows_reference(calibration, centre + 0.1, off, feats, clutter, robot3)
+    assert plus_index == ref_index
+    np.testing.assert_allclose(plus, np.asarray(ref_plus), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(minus, np.asarray(ref_minus), rtol=1e-12, atol=1e-12)
+    for rows, ref in ((plus, ref_plus), (minus, ref_minus)):
+        for cap in (2.0, 4.0, 100.0):
+            assert chi2_of(ref, cap) == chi2_of_reference(ref, cap)
+            assert chi2_of(rows, cap) == pytest.approx(chi2_of_reference(ref, cap), rel=1e-10)
+    assert (len(head_kernels.axial_rows.signatures), len(head_kernels.chi2_of.signatures)) == compiled
 
 
 @pytest.mark.parametrize("robot_id,along", [(6, True), (3, False), (1, False), (4, False)])
