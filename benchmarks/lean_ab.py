@@ -104,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
                 differ += not steady_chain_ab._same(results["base"], results["this"])
             if r == 0 and results[names[1]][0] == sk.PAIR_FOUND:
                 out = this.out
-                lean_views += (out[sk.R_FOUND_BY] == sk.FOUND_BY_LEAN) + (
+                lean_views += int(out[sk.R_FOUND_BY] == sk.FOUND_BY_LEAN) + int(
                     out[sk.OUT_VIEW_SIZE + sk.R_FOUND_BY] == sk.FOUND_BY_LEAN)
     print(f"search_pair, lean pass asked for: {len(calls)} calls x {args.reps} reps (robot 1, 1024^2), after the "
           f"frame copy, thread CPU us; lean views {lean_views} of {2 * len(calls)}")
