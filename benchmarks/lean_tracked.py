@@ -33,7 +33,7 @@ from appliance.robots import load_robots  # noqa: E402
 from drivers.loopback.scene_builders import S_BEND_CENTRELINE_MM, smooth_centreline  # noqa: E402
 from drivers.loopback.xray_render import ImagingSettings, VesselPhantom, biplane_views  # noqa: E402
 
-VARIANTS = {"roi": {"estimator": "weighted"}, "lean": {"estimator": "weighted", "lean_steady_state": True}}
+VARIANTS = {"roi": {"estimator": "weighted", "lean_steady_state": False}, "lean": {"estimator": "weighted", "lean_steady_state": True}}
 
 #: Views found by the lean pass, per variant (counted by wrapping SteadyPair.search).
 LEAN_VIEWS = {name: 0 for name in VARIANTS}
