@@ -21,7 +21,6 @@ import argparse
 import inspect
 import functools
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -67,9 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--reps", type=int, default=10)
     args = parser.parse_args(argv)
     warm_up_all()
-    scene = RenderedScene(1024, robot_id=1)
-    source = scene.pairs()
-    frames = [tuple(np.array(image) for image in next(source)) for _ in range(args.frames)]
+    scene, frames = steady_chain_ab.bench_frames(args.frames)
     calls = _lean_calls(frames, scene)
     this = steady_chain_ab._Side(sk)
     if args.base:
@@ -86,20 +83,12 @@ def main(argv: list[str] | None = None) -> int:
         side.kernel(frames[0][0], frames[0][1], *prepared[name][0])  # compile
     times = {name: np.zeros((args.reps, len(calls))) for name in sides}
     differ = lean_views = 0
-    thread = time.thread_time_ns
     for r in range(args.reps):
         order = names if r % 2 == 0 else names[::-1]
         for i, (n, _) in enumerate(calls):
             results = {}
             for name in order:
-                side = sides[name]
-                np.copyto(host[0], frames[n][0])
-                np.copyto(host[1], frames[n][1])
-                side.out[:] = 0.0
-                began = thread()
-                returned = side.kernel(host[0], host[1], *prepared[name][i])
-                times[name][r, i] = (thread() - began) / 1e3
-                results[name] = side.results(returned, prepared[name][i])
+                times[name][r, i], results[name] = sides[name].timed(host, frames[n], prepared[name][i])
             if args.base:
                 differ += not steady_chain_ab._same(results["base"], results["this"])
             if r == 0 and results[names[1]][0] == sk.PAIR_FOUND:

@@ -1,4 +1,4 @@
-"""Per frame, the lean pass against the ROI search over ``lean_tracked.py``'s JSON files (issue 8).
+"""Per frame, the lean pass against the ROI search over ``lean_accuracy.py``'s JSON files (issue 8).
 
 Pooled over the files given, per robot: centroid RMS (all ok frames), tips RMS, median axis error (ok,
 not ambiguous) of the ``roi`` and ``lean`` trackers; the frames one tracker has ok and the other not; the
