@@ -33,7 +33,8 @@ from appliance.robots import load_robots  # noqa: E402
 from drivers.loopback.scene_builders import S_BEND_CENTRELINE_MM, smooth_centreline  # noqa: E402
 from drivers.loopback.xray_render import ImagingSettings, VesselPhantom, biplane_views  # noqa: E402
 
-VARIANTS = {"roi": {"estimator": "weighted", "lean_steady_state": False}, "lean": {"estimator": "weighted", "lean_steady_state": True}}
+VARIANTS = {"roi": {"estimator": "weighted", "lean_steady_state": False},
+            "lean": {"estimator": "weighted", "lean_steady_state": True}}
 
 #: Views found by the lean pass, per variant (counted by wrapping SteadyPair.search).
 LEAN_VIEWS = {name: 0 for name in VARIANTS}
@@ -85,8 +86,9 @@ def main(argv: list[str] | None = None) -> int:
         results[robot_id] = {name: accuracy.summarise(s) for name, s in scores.items()}
         frames[robot_id] = scores
         differ = [i for i, (a, b) in enumerate(zip(scores["roi"], scores["lean"])) if _key(a) != _key(b)]
-        lines.append(f"robot {robot_id}: lean views {LEAN_VIEWS['lean'] - before['lean']} (of {2 * args.poses} measured "
-                     f"+ {2 * args.poses * (args.history - 1)} history); records differing {len(differ)}: {differ}")
+        found = LEAN_VIEWS["lean"] - before["lean"]
+        lines.append(f"robot {robot_id}: lean views {found} (of {2 * args.poses} measured + "
+                     f"{2 * args.poses * (args.history - 1)} history); records differing {len(differ)}: {differ}")
     if args.json:
         settings = {k: str(v) for k, v in vars(args).items()}
         args.json.write_text(json.dumps({"args": settings, "summary": results, "frames": frames}, indent=1))
