@@ -82,6 +82,16 @@ class _Side:
         by_name["out"] = self.out
         return [by_name[name] for name in mine]
 
+    def timed(self, host: tuple, frame: tuple, arguments: list) -> tuple:
+        """The call on ``frame`` after its copy into the ``host`` buffers: (thread CPU us, :meth:`results`)."""
+        np.copyto(host[0], frame[0])
+        np.copyto(host[1], frame[1])
+        self.out[:] = 0.0
+        began = time.thread_time_ns()
+        returned = self.kernel(host[0], host[1], *arguments)
+        elapsed = (time.thread_time_ns() - began) / 1e3
+        return elapsed, self.results(returned, arguments)
+
     def results(self, returned, arguments: list):  # type: ignore[no-untyped-def]
         """(status, output numbers, [weights_p, mask_p, weights_q, mask_q]) of the last call."""
         module = self.module
@@ -96,6 +106,13 @@ class _Side:
             h, w = (int(x) for x in self.out[module.OUT_WINDOW_SHAPES + 2 * view:module.OUT_WINDOW_SHAPES + 2 * view + 2])
             arrays += [w_buf[view, :h * w].reshape(h, w).copy(), m_buf[view, :h * w].reshape(h, w).copy()]
         return status, self.out[:module.OUT_TABLE_WARMED].copy(), arrays
+
+
+def bench_frames(count: int) -> tuple[RenderedScene, list]:
+    """``appliance bench``'s scene (robot 1, 1024^2) and its first ``count`` pairs, rendered."""
+    scene = RenderedScene(1024, robot_id=1)
+    source = scene.pairs()
+    return scene, [tuple(np.array(image) for image in next(source)) for _ in range(count)]
 
 
 def _same(a, b) -> bool:  # type: ignore[no-untyped-def]
@@ -114,9 +131,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     warm_up_all()
     sides = {"base": _Side(_load_chain(args.base)), "this": _Side(sk)}
-    scene = RenderedScene(1024, robot_id=1)
-    source = scene.pairs()
-    frames = [tuple(np.array(image) for image in next(source)) for _ in range(args.frames)]
+    scene, frames = bench_frames(args.frames)
     calls = _recorded_calls(frames, scene)
     host = (np.empty_like(frames[0][0]), np.empty_like(frames[0][1]))
     prepared = {name: [side.arguments(arguments) for _, arguments in calls] for name, side in sides.items()}
@@ -124,20 +139,12 @@ def main(argv: list[str] | None = None) -> int:
         side.kernel(frames[0][0], frames[0][1], *prepared[name][0])  # compile
     times = {name: np.zeros((args.reps, len(calls))) for name in sides}
     differ = 0
-    thread = time.thread_time_ns
     for r in range(args.reps):
         order = list(sides) if r % 2 == 0 else list(sides)[::-1]
         for i, (n, _) in enumerate(calls):
             results = {}
             for name in order:
-                side = sides[name]
-                np.copyto(host[0], frames[n][0])
-                np.copyto(host[1], frames[n][1])
-                side.out[:] = 0.0
-                began = thread()
-                returned = side.kernel(host[0], host[1], *prepared[name][i])
-                times[name][r, i] = (thread() - began) / 1e3
-                results[name] = side.results(returned, prepared[name][i])
+                times[name][r, i], results[name] = sides[name].timed(host, frames[n], prepared[name][i])
             differ += not _same(results["base"], results["this"])
     print(f"search_pair: {len(calls)} calls x {args.reps} reps (robot 1, 1024^2), after the frame copy, thread CPU us;"
           f" base {args.base}")

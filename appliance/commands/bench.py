@@ -70,8 +70,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--profile", metavar="N", type=integer_at_least(1), nargs="?", const=30, default=0,
                         help="after the measured pairs, profile N more (default 30) steady-state steps and print "
                              "where the time goes")
-    parser.add_argument("--lean-steady-state", action="store_true",
-                        help="track with the lean steady-state pass (prototype, RecognitionSettings.lean_steady_state)")
+    parser.add_argument("--lean-steady-state", action=argparse.BooleanOptionalAction, default=True,
+                        help="track with the lean steady-state pass (RecognitionSettings.lean_steady_state, on by "
+                             "default; --no-lean-steady-state: the full ROI search every frame)")
 
 
 class RenderedScene:
@@ -194,7 +195,7 @@ class _Progress:
 
 def measure(frames: int = 300, size: int = 1024, robot_id: int = 1, speed_mm_s: float = 8.0, seed: int = 0,
             sim_seconds: float = 3.0, amplifier: bool = True, progress: Any = None, profile_pairs: int = 0,
-            amplifier_in_process: bool = False, lean_steady_state: bool = False) -> Any:
+            amplifier_in_process: bool = False, lean_steady_state: bool = True) -> Any:
     """The whole benchmark: returns an :class:`appliance.benchmarking.BenchResult` (used by the CLI and
     ``benchmarks/pipeline_bench.py``)."""
     from appliance.benchmarking import run_bench, run_simulation
@@ -226,7 +227,7 @@ def measure(frames: int = 300, size: int = 1024, robot_id: int = 1, speed_mm_s: 
     result.notes.append("ROI: the steady-state pair is one compiled call (both views' attenuation, candidates, "
                         "refinement, gate and weighted features, and the reconstruction's front), timed as "
                         "segmentation; its features row is 0, triangulation is the reconstruction's Python rest"
-                        + ("; lean steady-state pass ON (prototype)" if lean_steady_state else ""))
+                        + ("" if lean_steady_state else "; lean steady-state pass OFF"))
     result.notes.append("loop = frame available -> SET_CURRENTS written to the pty (ROI recognition, control, "
                         "allocation, the driver's limit check and encoding, the write call); the line's transfer "
                         "and the acknowledgement are not in it ('amplifier: acked' is the round trip)")

@@ -382,7 +382,9 @@ def lean_view(image, coarse, fy, fx, log_table, g, prev, po, qu, qv, sigma, p, n
     # Attenuation on the grown capsule: attenuation_from_coarse's arithmetic, pixel for pixel.
     ws = coarse.shape[1]
     ix0, ix1, wxs = view_kernels.bilinear_columns(ww, x0, fx, ws)
-    a = np.zeros((hh, ww), dtype=np.float32)
+    # (Not zeroed: every pixel read of the attenuation, of its row pass and of the background below lies in the
+    # capsule or the support where they are written; the smoothed attenuation is read beyond, and zeroed.)
+    a = np.empty((hh, ww), dtype=np.float32)
     row = np.empty(ws, dtype=np.float32)
     one = np.float32(1.0)
     clo, chi = ix0[0], ix1[ww - 1] + 1
@@ -396,7 +398,7 @@ def lean_view(image, coarse, fy, fx, log_table, g, prev, po, qu, qv, sigma, p, n
             arow[x] = bg - log_table[src[x + x0]]
     # The 5x5 Gaussian on the smoothed capsule (rows, then columns, as gaussian5 sums them).
     g0, g1, g2, g3, g4 = g[0], g[1], g[2], g[3], g[4]
-    tmp = np.zeros((hh, ww), dtype=np.float32)
+    tmp = np.empty((hh, ww), dtype=np.float32)
     for y in range(hh):
         arow, trow = a[y], tmp[y]
         for x in range(xa0[y] + 2, xa1[y] - 2):
@@ -462,7 +464,7 @@ def lean_view(image, coarse, fy, fx, log_table, g, prev, po, qu, qv, sigma, p, n
             s_, t_ = gx * ax + gy * ay, -gx * ay + gy * ax
             if s_ >= lo_s_ and s_ <= hi_s_ and abs(t_) <= hi_t:
                 support[y - sy0, x - sx0] = 1
-    background = np.zeros((hh, ww), dtype=np.float32)
+    background = np.empty((hh, ww), dtype=np.float32)
     view_kernels._fill_values(smooth, 0, 0, hh, ww, support, sy0, sy1, sx0, sx1, fill_rows, fill_cols,
                               abs(ax) < abs(ay), background)
     # The weights near the body, their window, and how much the background under the body varies.

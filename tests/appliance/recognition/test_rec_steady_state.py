@@ -83,8 +83,9 @@ def _track_both_ways(views: dict[str, object], calibration: Calibration, robot: 
     body = RobotBody(spec.length_mm, spec.diameter_mm, spec.tip_angle_deg, spec.attenuation_per_mm)
     vessel = VesselPhantom(smooth_centreline(S_BEND_CENTRELINE_MM), 2.5, 0.06)
     renderer = BiplaneRenderer(views, body, vessel=vessel, settings=ImagingSettings(), seed=robot)
-    # The tight ROI (which the per-view path does not have) off: the pair's ROI is the per-view path's.
-    settings = RecognitionSettings(dark_level=ImagingSettings().dark_level, tight_roi=False)
+    # The tight ROI and the lean pass (which the per-view path does not have) off: the pair's ROI is the
+    # per-view path's.
+    settings = RecognitionSettings(dark_level=ImagingSettings().dark_level, tight_roi=False, lean_steady_state=False)
     known = spec if body else None
     paired, per_view = PostureTracker(calibration, settings, body=known), PostureTracker(calibration, settings, body=known)
     monkeypatch.setattr(per_view._pair, "usable", lambda *args: False)
@@ -225,10 +226,13 @@ def _tight_views(tracker: PostureTracker) -> tuple[bool, bool]:
 
 def _tight_track(views: dict[str, object], calibration: Calibration, robot: int, centres: list[np.ndarray],
                  direction: tuple[float, ...]) -> list[tuple[object, object, tuple[bool, bool]]]:
-    """Per frame: the posture with the tight ROI on, with it off, and which views the tight ROI found."""
+    """Per frame: the posture with the tight ROI on, with it off, and which views the tight ROI found (the lean
+    pass off in both: it is tried before the tight ROI)."""
     dark = ImagingSettings().dark_level
-    return _two_trackers(views, calibration, robot, centres, direction, RecognitionSettings(dark_level=dark),
-                         RecognitionSettings(dark_level=dark, tight_roi=False), _tight_views, body=True)
+    return _two_trackers(views, calibration, robot, centres, direction,
+                         RecognitionSettings(dark_level=dark, lean_steady_state=False),
+                         RecognitionSettings(dark_level=dark, tight_roi=False, lean_steady_state=False), _tight_views,
+                         body=True)
 
 
 @pytest.mark.parametrize("robot,start,velocity,direction", [
@@ -280,9 +284,8 @@ def _lean_track(views: dict[str, object], calibration: Calibration, robot: int, 
         return (tracker._pair.lean_views() if tracker.last_search == "roi" and tracker._lean_from is not None
                 else (False, False))
 
-    return _two_trackers(views, calibration, robot, centres, direction,
-                         RecognitionSettings(dark_level=dark, lean_steady_state=True),
-                         RecognitionSettings(dark_level=dark), used)
+    return _two_trackers(views, calibration, robot, centres, direction, RecognitionSettings(dark_level=dark),
+                         RecognitionSettings(dark_level=dark, lean_steady_state=False), used)
 
 
 def test_lean_pass_follows_a_clean_track_as_the_roi_search_does(views: dict[str, object],
@@ -297,6 +300,24 @@ def test_lean_pass_follows_a_clean_track_as_the_roi_search_does(views: dict[str,
         assert lean.ok and full.ok and lean.ambiguous == full.ambiguous and lean.head_identified == full.head_identified
         assert np.linalg.norm(lean.centroid_mm - full.centroid_mm) < 0.01
         assert np.abs(lean.tips_mm - full.tips_mm).max() < 0.05
+
+
+def test_lean_pass_is_the_default_and_not_taken_with_the_background_along_structure(
+        views: dict[str, object], calibration: Calibration) -> None:
+    # The default tracker takes the lean pass on a clean track (the test above); with the background
+    # interpolated along the structure (which the lean pass does not do) every view takes the ROI search.
+    assert RecognitionSettings().lean_steady_state
+    dark = ImagingSettings().dark_level
+    centres = [np.array([-8.0, 6.0, -3.0]) + n / 30.0 * np.array([9.0, 3.0, -2.0]) for n in range(4)]
+
+    def used(tracker: PostureTracker) -> tuple[bool, bool]:
+        return tracker._pair.lean_views() if tracker.last_search == "roi" else (False, False)
+
+    frames = _two_trackers(views, calibration, 1, centres, (-0.7, 0.2, 0.68),
+                           RecognitionSettings(dark_level=dark, background_along_structure=True),
+                           RecognitionSettings(dark_level=dark), used)
+    assert all(used == (False, False) for _, _, used in frames)
+    assert all(a.ok for a, _, _ in frames)
 
 
 def test_lean_pass_falls_back_to_the_roi_search_where_the_body_moved_unexpectedly(
