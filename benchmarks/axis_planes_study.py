@@ -31,8 +31,10 @@ if str(ROOT) not in sys.path:
 
 import benchmarks.accuracy as acc  # noqa: E402
 from appliance.compiled import warm_up_all  # noqa: E402
+from appliance.geometry_kernels import _SRC, VIEW_SIZE  # noqa: E402
 from appliance.recognition import PostureTracker, RecognitionSettings  # noqa: E402
 from appliance.recognition import body_kernels as bk  # noqa: E402
+from appliance.recognition.reconstruction_kernels import _plane_normal  # noqa: E402
 from appliance.robots import load_robots  # noqa: E402
 from drivers.loopback.scene_builders import S_BEND_CENTRELINE_MM, smooth_centreline  # noqa: E402
 from drivers.loopback.xray_render import BiplaneRenderer, ImagingSettings, RobotBody, RobotPose, VesselPhantom, biplane_views  # noqa: E402
@@ -50,10 +52,54 @@ def _wrapped_place(G, inp, body, out):
     c = np.empty(3)
     sigma_c = rows[0, bk._E_CORE_S] if rows[0, bk._E_CORE_N] > 0 else 0.0
     bk._onto_axis_planes(G, free, sigma_c, c)
+    # (round 11) the shift at each turn factor, at the production share (the sigma cut-off as in production)
+    turned = {}
+    for k in TURNS:
+        ck = np.empty(3)
+        bk._onto_planes_turned(G, inp, sigma_c, k, ck)
+        turned[str(k)] = (ck - inp[:3]).tolist()
+    _last.update(turned=turned, normals=_plane_normals(G, inp), centroid_in=inp[:3].tolist())
     _last.update(sigma=float(inp[bk.IN_AXIS_SIGMA]), delta=(c - inp[:3]).tolist(),
                  share=_weight("now", math.degrees(float(inp[bk.IN_AXIS_SIGMA]))),
                  placed=out[bk.OUT_CENTROID:bk.OUT_CENTROID + 3].tolist() if out[bk.OUT_PLACED] else None,
                  centroid_sigma_mm=float(sigma_c))
+
+
+#: The planes' turn factors (:data:`.body_kernels.AXIS_PLANE_TURN_PER_AXIS_SIGMA`) whose shifts are recorded.
+TURNS = (0.0, 0.25, 0.5, 1.0, 2.0, 4.0)
+
+
+def _plane_normals(G, inp) -> list:
+    """Each view's axis plane normal as :func:`.body_kernels._onto_planes_turned` builds it (none if absent)."""
+    normals = []
+    for view in range(2):
+        i = bk.IN_VIEW + view * bk.IN_VIEW_SIZE
+        tips = inp[i + bk.V_TIPS:i + bk.V_TIPS + 4]
+        d = np.array([tips[0] - tips[2], tips[1] - tips[3]])
+        n = np.empty(3)
+        span = float(np.linalg.norm(d))
+        ok = inp[i + bk.V_PRESENT] != 0.0 and span > 0 and _plane_normal(
+            G, view * VIEW_SIZE, inp[i + bk.V_CENTROID:i + bk.V_CENTROID + 2].copy(), d / span, 0.25 * span * span, 0.0, n)
+        normals.append(n.tolist() if ok else None)
+    return normals
+
+
+def _plane_study(G, normals, centroid_in, pose) -> dict:
+    """The planes' angle (deg), and each plane's turn from the true axis plane (deg: the angle between its normal
+    and the normal of the plane through the source and the true axis)."""
+    res = {}
+    if all(n is not None for n in normals):
+        res["plane_angle_deg"] = math.degrees(math.asin(min(1.0, float(np.linalg.norm(np.cross(normals[0], normals[1]))))))
+    turns = []
+    for view, n in enumerate(normals):
+        if n is None:
+            continue
+        src = G[view * VIEW_SIZE + _SRC:view * VIEW_SIZE + _SRC + 3]
+        true_n = np.cross(pose.centroid_mm - src, pose.direction)
+        true_n /= np.linalg.norm(true_n)
+        turns.append(math.degrees(math.asin(min(1.0, float(np.linalg.norm(np.cross(n, true_n)))))))
+    res["plane_turns_deg"] = turns
+    return res
 
 
 def _views_errors(posture, pair) -> dict:
@@ -118,7 +164,8 @@ def run(seed: int, robot_ids: list[int], tracked: bool, only: set | None, out) -
                 if posture.direction is not None:
                     row["axis_line_deg"] = acc._angle(np.asarray(posture.direction), u)
                 if _last.get("placed") is not None:
-                    row.update({k: _last[k] for k in ("sigma", "delta", "share", "centroid_sigma_mm")})
+                    row.update({k: _last[k] for k in ("sigma", "delta", "share", "centroid_sigma_mm", "turned")})
+                    row.update(_plane_study(cal.packed, _last["normals"], _last["centroid_in"], pose))
                     row["final_is_placed"] = bool(np.allclose(_last["placed"], posture.centroid_mm, atol=1e-9))
             out.write(json.dumps(row) + "\n")
             out.flush()
