@@ -94,7 +94,11 @@ AXIS_PLANES_FULL_SIGMA_RAD = math.radians(4.0)
 #: plane, its offset is uncertain by ``r`` times that angle as well as by :data:`AXIS_LINE_SIGMA_PX`. Where
 #: the planes nearly coincide (an axis near an epipolar plane) their line lies far from the centroid along
 #: their weak direction, and there the turn, not the pixel noise, is what is uncertain (:func:`_planes_shift`).
-AXIS_PLANE_TURN_PER_AXIS_SIGMA = 1.0
+#: Measured on dev seeds 1-13 (cold, ``benchmarks/axis_planes_study.py``: each plane's normal against the
+#: true axis plane's): where the planes meet within 4-8 deg (78-200 frames) the planes turn by 0.04-0.08 of
+#: the axis sigma (RMS; 95 % within 0.10-0.14): there the axis sigma is the direction within the planes,
+#: which the tips fix, not the planes' own turn (all frames: 0.26-0.97 of it, RMS per sigma bin).
+AXIS_PLANE_TURN_PER_AXIS_SIGMA = 0.1
 
 # ``inp``: centroid (3), direction (3), then per view IN_VIEW_SIZE numbers from IN_VIEW, then the tail.
 IN_CENTROID = 0
