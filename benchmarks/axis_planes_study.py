@@ -12,8 +12,12 @@ Per frame it writes (``--out``, JSON lines) the axis sigma, the centroid error v
 shift, the truth's axis, the error along / across the true axis, each view's image-centroid error along and
 across its image axis (px), the axis error, and the flags; ``--summary`` prints bins of sigma over such files.
 
+Round 11 rows also hold ``turned`` (the shift at each planes' turn factor of :data:`TURNS`,
+:data:`.body_kernels.AXIS_PLANE_TURN_PER_AXIS_SIGMA`), the planes' angle and each plane's turn from the true
+axis plane; ``--turns`` summarises them.
+
 Usage: ``python benchmarks/axis_planes_study.py --seeds 1-20 [--robots 1,...] [--tracked] [--poses-only SEED:ROBOT:POSE,...]
---out FILE`` and ``python benchmarks/axis_planes_study.py --summary FILE...``.
+--out FILE`` and ``python benchmarks/axis_planes_study.py --summary FILE...`` or ``--turns FILE...``.
 """
 from __future__ import annotations
 
@@ -31,8 +35,10 @@ if str(ROOT) not in sys.path:
 
 import benchmarks.accuracy as acc  # noqa: E402
 from appliance.compiled import warm_up_all  # noqa: E402
+from appliance.geometry_kernels import _SRC, VIEW_SIZE  # noqa: E402
 from appliance.recognition import PostureTracker, RecognitionSettings  # noqa: E402
 from appliance.recognition import body_kernels as bk  # noqa: E402
+from appliance.recognition.reconstruction_kernels import _plane_normal  # noqa: E402
 from appliance.robots import load_robots  # noqa: E402
 from drivers.loopback.scene_builders import S_BEND_CENTRELINE_MM, smooth_centreline  # noqa: E402
 from drivers.loopback.xray_render import BiplaneRenderer, ImagingSettings, RobotBody, RobotPose, VesselPhantom, biplane_views  # noqa: E402
@@ -50,10 +56,58 @@ def _wrapped_place(G, inp, body, out):
     c = np.empty(3)
     sigma_c = rows[0, bk._E_CORE_S] if rows[0, bk._E_CORE_N] > 0 else 0.0
     bk._onto_axis_planes(G, free, sigma_c, c)
+    # (round 11) the shift at each turn factor, at the production share (the sigma cut-off as in production)
+    c_now = np.empty(3)
+    bk._onto_axis_planes(G, inp, sigma_c, c_now)
+    turned = {}
+    for k in TURNS:
+        ck = np.empty(3)
+        bk._onto_planes_turned(G, inp, sigma_c, k, ck)
+        turned[str(k)] = (ck - inp[:3]).tolist()
+    turned[str(float(bk.AXIS_PLANE_TURN_PER_AXIS_SIGMA))] = (c_now - inp[:3]).tolist()
+    _last.update(turned=turned, turn_now=str(float(bk.AXIS_PLANE_TURN_PER_AXIS_SIGMA)), normals=_plane_normals(G, inp),
+                 centroid_in=inp[:3].tolist())
     _last.update(sigma=float(inp[bk.IN_AXIS_SIGMA]), delta=(c - inp[:3]).tolist(),
                  share=_weight("now", math.degrees(float(inp[bk.IN_AXIS_SIGMA]))),
                  placed=out[bk.OUT_CENTROID:bk.OUT_CENTROID + 3].tolist() if out[bk.OUT_PLACED] else None,
                  centroid_sigma_mm=float(sigma_c))
+
+
+#: The planes' turn factors (:data:`.body_kernels.AXIS_PLANE_TURN_PER_AXIS_SIGMA`) whose shifts are recorded.
+TURNS = (0.0, 0.1, 0.25, 0.5, 1.0, 2.0, 4.0)
+
+
+def _plane_normals(G, inp) -> list:
+    """Each view's axis plane normal as :func:`.body_kernels._onto_planes_turned` builds it (none if absent)."""
+    normals = []
+    for view in range(2):
+        i = bk.IN_VIEW + view * bk.IN_VIEW_SIZE
+        tips = inp[i + bk.V_TIPS:i + bk.V_TIPS + 4]
+        d = np.array([tips[0] - tips[2], tips[1] - tips[3]])
+        n = np.empty(3)
+        span = float(np.linalg.norm(d))
+        ok = inp[i + bk.V_PRESENT] != 0.0 and span > 0 and _plane_normal(
+            G, view * VIEW_SIZE, inp[i + bk.V_CENTROID:i + bk.V_CENTROID + 2].copy(), d / span, 0.25 * span * span, 0.0, n)
+        normals.append(n.tolist() if ok else None)
+    return normals
+
+
+def _plane_study(G, normals, centroid_in, pose) -> dict:
+    """The planes' angle (deg), and each plane's turn from the true axis plane (deg: the angle between its normal
+    and the normal of the plane through the source and the true axis)."""
+    res = {}
+    if all(n is not None for n in normals):
+        res["plane_angle_deg"] = math.degrees(math.asin(min(1.0, float(np.linalg.norm(np.cross(normals[0], normals[1]))))))
+    turns = []
+    for view, n in enumerate(normals):
+        if n is None:
+            continue
+        src = G[view * VIEW_SIZE + _SRC:view * VIEW_SIZE + _SRC + 3]
+        true_n = np.cross(pose.centroid_mm - src, pose.direction)
+        true_n /= np.linalg.norm(true_n)
+        turns.append(math.degrees(math.asin(min(1.0, float(np.linalg.norm(np.cross(n, true_n)))))))
+    res["plane_turns_deg"] = turns
+    return res
 
 
 def _views_errors(posture, pair) -> dict:
@@ -118,7 +172,9 @@ def run(seed: int, robot_ids: list[int], tracked: bool, only: set | None, out) -
                 if posture.direction is not None:
                     row["axis_line_deg"] = acc._angle(np.asarray(posture.direction), u)
                 if _last.get("placed") is not None:
-                    row.update({k: _last[k] for k in ("sigma", "delta", "share", "centroid_sigma_mm")})
+                    row.update({k: _last[k] for k in ("sigma", "delta", "share", "centroid_sigma_mm", "turned",
+                                                           "turn_now")})
+                    row.update(_plane_study(cal.packed, _last["normals"], _last["centroid_in"], pose))
                     row["final_is_placed"] = bool(np.allclose(_last["placed"], posture.centroid_mm, atol=1e-9))
             out.write(json.dumps(row) + "\n")
             out.flush()
@@ -198,6 +254,51 @@ def summary(paths: list[Path]) -> None:
         print(f"{'max':>10} {'':5} " + " ".join(maxes))
 
 
+def turn_summary(paths: list[Path]) -> None:
+    """Round 11: the planes' turn model (rows with ``turned``): per turn factor the centroid RMS (all frames and
+    per robot, and by the planes' angle) and the frames it moves by > 1 um against no turn; each plane's measured
+    turn (from the true axis plane) against the axis sigma, by the planes' angle. A row's error at factor ``k``
+    is its production error plus ``turned[k] - turned[now]`` (now: the production factor)."""
+    rows = [json.loads(line) for p in paths for line in p.read_text().splitlines() if line.strip()]
+    rows = [r for r in rows if r["ok"] and r["centroid_mm"] is not None]
+    ks = [str(k) for k in TURNS if all(str(k) in r["turned"] for r in rows if "turned" in r)]   # (in every file)
+
+    def shifted(r: dict) -> bool:
+        return "turned" in r and bool(r.get("final_is_placed"))
+
+    def err(r: dict, k: str | None) -> float:
+        """The row's centroid error at turn factor ``k`` (None: no planes at all)."""
+        if not shifted(r):
+            return r["centroid_mm"]
+        now = np.asarray(r["turned"][r.get("turn_now", "1.0")])   # (rows of the first round-11 runs: at 1.0)
+        new = np.asarray(r["turned"][k]) if k is not None else np.zeros(3)
+        return float(np.linalg.norm(np.asarray(r["err"]) + new - now))
+
+    def rms(v: list) -> float:
+        return math.sqrt(np.mean(np.square(v))) if len(v) else math.nan
+
+    print(f"{len(rows)} ok frames; centroid RMS (mm) per turn factor, all frames and per robot")
+    for k in (None, *ks):
+        per: dict = {}
+        for r in rows:
+            per.setdefault(r["robot"], []).append(err(r, k))
+        every = [x for v in per.values() for x in v]
+        moved = "" if k in (None, ks[0]) else " (vs no turn: %d better, %d worse by > 1 um)" % (
+            sum(err(r, k) < err(r, ks[0]) - 1e-3 for r in rows), sum(err(r, k) > err(r, ks[0]) + 1e-3 for r in rows))
+        print(f"{k or 'none':>6}: all {rms(every):.5f} " + " ".join(f"r{rb} {rms(v):.5f}" for rb, v in sorted(per.items()))
+              + moved)
+    placed = [r for r in rows if "plane_angle_deg" in r and shifted(r)]
+    print("by the planes' angle (deg): frames, centroid RMS without the planes and per turn factor (" + ", ".join(ks) + "); each plane's turn (deg) RMS and its ratio to the axis sigma")
+    for lo, hi in ((0, 2), (2, 4), (4, 8), (8, 15), (15, 90)):
+        sel = [r for r in placed if lo <= r["plane_angle_deg"] < hi]
+        if not sel:
+            continue
+        turns = [t for r in sel for t in r["plane_turns_deg"]]
+        ratio = [t / math.degrees(r["sigma"]) for r in sel for t in r["plane_turns_deg"] if r["sigma"] > 0]
+        print(f"{lo:2d}-{hi:<3d} {len(sel):5d} " + " ".join(f"{rms([err(r, k) for r in sel]):.4f}" for k in (None, *ks))
+              + f"  turn RMS {rms(turns):.3f} ratio RMS {rms(ratio):.3f} (95 % {np.percentile(ratio, 95):.3f})")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", default="1-20")
@@ -206,7 +307,11 @@ def main() -> int:
     ap.add_argument("--poses-only", default=None, help="SEED:ROBOT:POSE,... (only these frames)")
     ap.add_argument("--out", type=Path)
     ap.add_argument("--summary", type=Path, nargs="+")
+    ap.add_argument("--turns", type=Path, nargs="+", help="round 11: the planes' turn model's summary of such files")
     a = ap.parse_args()
+    if a.turns:
+        turn_summary(a.turns)
+        return 0
     if a.summary:
         summary(a.summary)
         return 0

@@ -89,6 +89,16 @@ AXIS_LINE_SIGMA_PX = CENTROID_SIGMA_PX
 #: 0.068 -> 0.077, at this weight 0.066. The earlier hard cut-off at 2.5 deg (then
 #: ``settings.max_axis_sigma_deg``'s default) left 11 robot-seed runs above 0.1 mm centroid RMS there, this 9.
 AXIS_PLANES_FULL_SIGMA_RAD = math.radians(4.0)
+#: Each view's axis plane turns about its ray through the moment centroid (its 2D axis line turns about the
+#: image centroid) by this times the 3D axis' sigma (one sigma): at a point ``r`` mm from that ray, in the
+#: plane, its offset is uncertain by ``r`` times that angle as well as by :data:`AXIS_LINE_SIGMA_PX`. Where
+#: the planes nearly coincide (an axis near an epipolar plane) their line lies far from the centroid along
+#: their weak direction, and there the turn, not the pixel noise, is what is uncertain (:func:`_planes_shift`).
+#: Measured on dev seeds 1-13 (cold, ``benchmarks/axis_planes_study.py``: each plane's normal against the
+#: true axis plane's): where the planes meet within 4-8 deg (78-200 frames) the planes turn by 0.04-0.08 of
+#: the axis sigma (RMS; 95 % within 0.10-0.14): there the axis sigma is the direction within the planes,
+#: which the tips fix, not the planes' own turn (all frames: 0.26-0.97 of it, RMS per sigma bin).
+AXIS_PLANE_TURN_PER_AXIS_SIGMA = 0.1
 
 # ``inp``: centroid (3), direction (3), then per view IN_VIEW_SIZE numbers from IN_VIEW, then the tail.
 IN_CENTROID = 0
@@ -319,6 +329,13 @@ def _disagreement(e: np.ndarray) -> tuple[float, int, int, float]:
 
 @kernel
 def _onto_axis_planes(G: np.ndarray, inp: np.ndarray, centroid_sigma: float, c: np.ndarray) -> None:
+    """:func:`_onto_planes_turned` with the planes' turn :data:`AXIS_PLANE_TURN_PER_AXIS_SIGMA` of the axis sigma."""
+    _onto_planes_turned(G, inp, centroid_sigma, AXIS_PLANE_TURN_PER_AXIS_SIGMA, c)
+
+
+@kernel
+def _onto_planes_turned(G: np.ndarray, inp: np.ndarray, centroid_sigma: float, turn_per_sigma: float,
+                        c: np.ndarray) -> None:
     """The posture's centroid moved, across its axis, onto the line where the views' axis planes meet, into
     ``c`` (3).
 
@@ -330,10 +347,11 @@ def _onto_axis_planes(G: np.ndarray, inp: np.ndarray, centroid_sigma: float, c: 
     vessel, where the planes' line was within 0.01-0.05 mm of the truth). Along the axis the body's
     evidence places it (:func:`place`); across it, the shift ``delta`` (perpendicular to the direction) is
     the least-squares one that puts the point in both planes, each plane's offset weighted by
-    :data:`AXIS_LINE_SIGMA_PX` of its view, with ``|delta|`` held to the moment centroid's own sigma
-    (``centroid_sigma``, mm): where the planes nearly coincide (an axis near an epipolar plane) the
-    component they leave open stays where the triangulation put it. Less of the shift where the axis is
-    uncertain (:data:`AXIS_PLANES_FULL_SIGMA_RAD`)."""
+    :data:`AXIS_LINE_SIGMA_PX` of its view and by how far the planes' turn moves it
+    (``turn_per_sigma`` of the axis sigma), with ``|delta|`` held to the moment centroid's own sigma
+    (``centroid_sigma``, mm; :func:`_planes_shift`): where the planes nearly coincide (an axis near an
+    epipolar plane) the component they leave open stays where the triangulation put it. Less of the shift
+    where the axis is uncertain (:data:`AXIS_PLANES_FULL_SIGMA_RAD`)."""
     u = inp[IN_DIRECTION:IN_DIRECTION + 3]
     for i in range(3):
         c[i] = inp[IN_CENTROID + i]
@@ -346,12 +364,13 @@ def _onto_axis_planes(G: np.ndarray, inp: np.ndarray, centroid_sigma: float, c: 
     axis_sigma = inp[IN_AXIS_SIGMA]
     if not na > 0 or not centroid_sigma > 0 or not axis_sigma >= 0.0:
         return
-    # (1.0 up to the full sigma: those frames' shift is the unweighted one, to the bit)
     share = 1.0 if axis_sigma <= AXIS_PLANES_FULL_SIGMA_RAD else (AXIS_PLANES_FULL_SIGMA_RAD / axis_sigma) ** 2
     a0, a1, a2 = a0 / na, a1 / na, a2 / na
     w0, w1, w2 = u[1] * a2 - u[2] * a1, u[2] * a0 - u[0] * a2, u[0] * a1 - u[1] * a0
     prior = 1.0 / (centroid_sigma * centroid_sigma)
-    m00, m01, m11, r0, r1 = prior, 0.0, prior, 0.0, 0.0
+    # Per plane: its weight, its normal's and its in-plane lever's components along (a, w).
+    planes = np.zeros((2, 5))
+    m00, m01, m11, r0, r1 = 0.0, 0.0, 0.0, 0.0, 0.0
     normal = np.empty(2 * 3)
     axis2 = np.empty(2)
     centre2 = np.empty(2)
@@ -373,23 +392,69 @@ def _onto_axis_planes(G: np.ndarray, inp: np.ndarray, centroid_sigma: float, c: 
         s0, s1, s2 = G[o + _SRC], G[o + _SRC + 1], G[o + _SRC + 2]
         offset = n[0] * (s0 - c[0]) + n[1] * (s1 - c[1]) + n[2] * (s2 - c[2])   # the plane's, from the point
         x0, x1, x2 = s0 - c[0], s1 - c[1], s2 - c[2]
-        sigma = AXIS_LINE_SIGMA_PX * math.sqrt(x0 * x0 + x1 * x1 + x2 * x2) / G[o + _K]
+        z = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
+        sigma = AXIS_LINE_SIGMA_PX * z / G[o + _K]
         weight = 1.0 / (sigma * sigma)
         pa = n[0] * a0 + n[1] * a1 + n[2] * a2
         pw = n[0] * w0 + n[1] * w1 + n[2] * w2
+        # The lever's direction: in the plane, across the ray (n x ray; the point is on the ray to its offset).
+        l0, l1, l2 = n[1] * x2 - n[2] * x1, n[2] * x0 - n[0] * x2, n[0] * x1 - n[1] * x0
+        nl = math.sqrt(l0 * l0 + l1 * l1 + l2 * l2)
+        if nl > 0:
+            planes[view, 3] = (l0 * a0 + l1 * a1 + l2 * a2) / nl
+            planes[view, 4] = (l0 * w0 + l1 * w1 + l2 * w2) / nl
+        planes[view, 0], planes[view, 1], planes[view, 2] = weight, pa, pw
         m00 += weight * pa * pa
         m01 += weight * pa * pw
         m11 += weight * pw * pw
         r0 += weight * pa * offset
         r1 += weight * pw * offset
-    det = m00 * m11 - m01 * m01
-    if not det > 0:
-        return
-    da = share * ((m11 * r0 - m01 * r1) / det)
-    dw = share * ((m00 * r1 - m01 * r0) / det)
-    c[0] += da * a0 + dw * w0
-    c[1] += da * a1 + dw * w1
-    c[2] += da * a2 + dw * w2
+    da, dw = _planes_shift(m00, m01, m11, r0, r1, prior, planes, turn_per_sigma * axis_sigma)
+    c[0] += share * (da * a0 + dw * w0)
+    c[1] += share * (da * a1 + dw * w1)
+    c[2] += share * (da * a2 + dw * w2)
+
+
+@kernel
+def _planes_shift(m00: float, m01: float, m11: float, r0: float, r1: float, prior: float, planes: np.ndarray,
+                  turn_sigma: float) -> tuple[float, float]:
+    """The shift ``(da, dw)`` across the axis (:func:`_onto_axis_planes`' basis): the planes' least-squares point
+    (normal equations ``m``, ``r``, without the prior) fused with the centroid's prior ``prior`` (1 / mm^2, about
+    the triangulated point), in the planes' eigen-directions.
+
+    Each coordinate of the planes' point is as uncertain as its normal equations say (the offsets' pixel noise)
+    and, as well, as the planes' turns (``turn_sigma``, rad, each plane about its centroid ray) move it there:
+    a plane turned by ``phi`` is off by ``phi`` times the point's lever (``planes[:, 3:5]``, its in-plane
+    distance from the ray). Where the planes nearly coincide, their weak direction's coordinate is
+    ``offset difference / sin(angle)`` and errs by about its own size times ``turn / angle``: the turns, not the
+    pixels, limit it, and it stays with the triangulation. The weak coordinate is taken first, with the
+    levers at the planes' point; the strong one then with the levers at the point so placed (the planes pivot
+    near the centroid: their common offset there is not made uncertain by how far away they cross).
+    ``planes`` rows: weight (1 / mm^2), the normal's and the lever direction's components along (a, w)."""
+    trace = m00 + m11
+    root = math.hypot(0.5 * (m00 - m11), m01)
+    big, small = 0.5 * trace + root, 0.5 * trace - root
+    angle = 0.5 * math.atan2(2.0 * m01, m00 - m11)
+    e0, e1 = math.cos(angle), math.sin(angle)   # the strong direction; the weak one is (-e1, e0)
+    strong = (e0 * r0 + e1 * r1) / big if big > 0 else 0.0
+    weak = (e0 * r1 - e1 * r0) / small if small > 1e-9 * big else 0.0
+    pa0, pw0 = strong * e0 - weak * e1, strong * e1 + weak * e0   # the planes' point
+    var = 0.0
+    for k in range(2):
+        lever = planes[k, 3] * pa0 + planes[k, 4] * pw0
+        g = (e0 * planes[k, 2] - e1 * planes[k, 1]) * planes[k, 0] * lever
+        var += g * g
+    info = small / (1.0 + var * turn_sigma * turn_sigma / small) if small > 1e-9 * big else 0.0
+    weak = info * weak / (info + prior)
+    pa1, pw1 = strong * e0 - weak * e1, strong * e1 + weak * e0
+    var = 0.0
+    for k in range(2):
+        lever = planes[k, 3] * pa1 + planes[k, 4] * pw1
+        g = (e0 * planes[k, 1] + e1 * planes[k, 2]) * planes[k, 0] * lever
+        var += g * g
+    info = big / (1.0 + var * turn_sigma * turn_sigma / big) if big > 0 else 0.0
+    strong = info * strong / (info + prior)
+    return strong * e0 - weak * e1, strong * e1 + weak * e0
 
 
 @kernel

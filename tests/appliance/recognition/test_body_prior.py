@@ -17,6 +17,7 @@ import pytest
 
 from appliance.geometry import Calibration
 from appliance.recognition import PostureTracker, RecognitionSettings
+from appliance.recognition import body_kernels
 from appliance.recognition.body_prior import BodyModel, place_body
 from appliance.recognition.posture import Posture, ViewObservation
 from appliance.robots import load_robots
@@ -308,3 +309,30 @@ def test_the_warm_up_compiles_the_end_sigma_for_the_head_by_body_call(robot6: Bo
     for is_head in (True, False):   # the argument types axial_rows passes: a flag, the body's floats, floats
         bk._end_sigma_mm(is_head, robot6.cone_length_mm, robot6.diameter_mm, 0.05, float(np.sqrt(0.3)), 1.0)
     assert len(bk._end_sigma_mm.signatures) == compiled
+
+
+def test_nearly_coincident_axis_planes_leave_their_weak_direction_to_the_centroid() -> None:
+    # Two planes across the axis (coordinates a, w), 1 um offset noise, meeting at an angle of half their turn
+    # sigma (an axis within a fraction of a degree of an epipolar plane, sigma 4 deg): their line 1 mm from
+    # the centroid along their weak direction (w) and 0.1 mm along their common normal (a).
+    turn = body_kernels.AXIS_PLANE_TURN_PER_AXIS_SIGMA * math.radians(4.0)
+    half = 0.25 * turn
+    line = np.array([0.1, 1.0])
+    planes = np.zeros((2, 5))
+    m, r = np.zeros((2, 2)), np.zeros(2)
+    for k, side in enumerate((1.0, -1.0)):
+        normal = np.array([math.cos(half), side * math.sin(half)])
+        weight = 1.0 / 0.001 ** 2
+        planes[k] = (weight, *normal, -normal[1], normal[0])   # the lever: in the plane, across its ray
+        m += weight * np.outer(normal, normal)
+        r += weight * normal * float(normal @ line)
+    prior = 1.0   # the centroid's sigma 1 mm (over another structure)
+    args = (m[0, 0], m[0, 1], m[1, 1], r[0], r[1], prior, planes)
+    strong, weak = body_kernels._planes_shift(*args, turn)
+    # The common normal's offset is sure: the point goes onto it. Across it, the planes' line is as uncertain as
+    # its own distance: the centroid stays (within 0.15 of the 1 mm the line would take it).
+    assert strong == pytest.approx(0.1, abs=0.005)
+    assert abs(weak) < 0.15
+    # Without the turn the pixel noise alone would call their crossing sure (~6 /mm^2 against the prior's 1).
+    _, unturned = body_kernels._planes_shift(*args, 0.0)
+    assert unturned > 0.8
