@@ -232,6 +232,11 @@ class RecognitionSettings(StrictModel):
     #: from the track's is lost: between frames 33 ms apart the length changes by noise only (<= ~5 % on
     #: clean frames of the accuracy benchmark); more is a blob cut short or run on into a vessel.
     max_length_change: float = Field(0.15, gt=0)
+    #: With the robot's body known, a rod whose ends are closer than this fraction of the body's length (and
+    #: more than two diameters short of it) is lost (plausibility.part_of_body): only part of the robot
+    #: was found. Frames reported ok on dev seeds 1-20 measure >= 0.77 of their body (robot 4, exempt by
+    #: the diameters, 0.46); the frame that led to it measured 0.18 (seed 6264338, robot 6, 23 mm off).
+    min_length_fraction: float = Field(0.5, gt=0, le=1)
 
     #: A frame whose background under the robot varies by more than this fraction of the robot's
     #: contrast (overlap with a vessel, say) is flagged ambiguous: reduced accuracy.

@@ -19,7 +19,9 @@ from appliance.recognition.plausibility import (
     cut_by_edge,
     not_robot_like,
     off_its_images,
+    part_of_body,
 )
+from appliance.recognition.body_prior import BodyModel
 from appliance.recognition.segmentation import Roi
 from drivers.loopback.xray_render import biplane_views
 
@@ -179,6 +181,24 @@ def test_a_tracked_rod_in_doubt_cannot_change_length_or_turn_its_head_round_in_o
     assert reason is not None and "100 deg away" in reason
     assert at_odds_with_track(rec(19.0, tilted, head=False), over_vessel, up, 19.0, SETTINGS) is None
     assert at_odds_with_track(rec(14.5, -up), over_vessel, up, 19.0, RecognitionSettings(estimator="paper")) is None
+
+
+def test_a_rod_much_shorter_than_the_body_is_only_part_of_it() -> None:
+    robot6 = BodyModel(length_mm=30.0, centroid_from_tail_mm=9.2, cone_length_mm=19.0, diameter_mm=5.0)
+    robot4 = BodyModel(length_mm=3.0, centroid_from_tail_mm=1.2, cone_length_mm=2.4, diameter_mm=1.5)
+    # Seed 6264338, robot 6 over the vessel: ends 5.3 mm apart, placed as the whole body 23 mm off.
+    reason = part_of_body(_rec(None, length_mm=5.3), robot6, SETTINGS)
+    assert reason is not None and "5.3 mm apart, against its 30 mm body" in reason
+    assert part_of_body(_rec(None, length_mm=14.9), robot6, SETTINGS) is not None
+    assert part_of_body(_rec(None, length_mm=15.1), robot6, SETTINGS) is None  # half the body: kept
+    assert part_of_body(_rec(None, length_mm=27.0), robot6, SETTINGS) is None
+    # A stubby body's ends are set by its width too: robot 4 at under half its length is not refused.
+    assert part_of_body(_rec(None, length_mm=1.4), robot4, SETTINGS) is None
+    # Without a body, or with the paper's estimator, nothing is known to compare with.
+    assert part_of_body(_rec(None, length_mm=5.3), None, SETTINGS) is None
+    assert part_of_body(_rec(None, length_mm=5.3), robot6, RecognitionSettings(estimator="paper")) is None
+    assert part_of_body(_rec(None, length_mm=5.3), robot6,
+                        SETTINGS.model_copy(update={"min_length_fraction": 0.1})) is None
 
 
 def test_declutter_places_the_centroid_and_both_tips_by_the_clean_view() -> None:

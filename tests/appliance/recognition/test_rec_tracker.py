@@ -71,6 +71,20 @@ def test_rendered_pose_is_recognised(scene: tuple[Calibration, BiplaneRenderer],
     assert set(posture.timings_us) == {"segmentation", "features", "correspondence", "triangulation"}
 
 
+def test_a_robot_much_shorter_than_the_tracker_s_body_is_lost_not_placed(
+        scene: tuple[Calibration, BiplaneRenderer]) -> None:
+    # The scene's robot is 10 mm long; a tracker told of a 30 mm body would place that body from a third of
+    # it (a body length off) unless it refuses the rod as only part of its robot.
+    calibration, renderer = scene
+    pair = renderer.render(RobotPose(np.array([3.0, -4.0, 5.0]), np.array([0.3, 0.5, 0.81])))
+    right = BodyModel(length_mm=10.0, centroid_from_tail_mm=4.4, cone_length_mm=5.7, diameter_mm=2.0)
+    long = replace(right, length_mm=30.0, centroid_from_tail_mm=14.4)
+    assert PostureTracker(calibration, body=right).process(pair.images["p"], pair.images["q"]).ok
+    posture = PostureTracker(calibration, body=long).process(pair.images["p"], pair.images["q"])
+    assert not posture.ok and posture.centroid_mm is None
+    assert "against its 30 mm body" in posture.reason and "only part of the robot" in posture.reason
+
+
 def test_paper_estimator_runs_end_to_end(scene: tuple[Calibration, BiplaneRenderer]) -> None:
     calibration, renderer = scene
     pose = RobotPose(np.array([3.0, -4.0, 5.0]), np.array([0.3, 0.5, 0.81]))
