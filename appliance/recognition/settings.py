@@ -237,6 +237,11 @@ class RecognitionSettings(StrictModel):
     #: was found. Frames reported ok on dev seeds 1-20 measure >= 0.77 of their body (robot 4, exempt by
     #: the diameters, 0.46); the frame that led to it measured 0.18 (seed 6264338, robot 6, 23 mm off).
     min_length_fraction: float = Field(0.5, gt=0, le=1)
+    #: An object whose widest view's blob is narrower than this fraction of the known body's diameter
+    #: (in mm at the reconstructed centroid) is not the robot (plausibility.narrower_than_body). The robot's
+    #: own frames measure >= 0.85 of its diameter (dev seeds 1-6, all robots); the vessel stretch that led
+    #: to it 0.16 (seed 5266249, robot 6, placed 27 mm off).
+    min_width_fraction: float = Field(0.5, ge=0, le=1)
 
     #: A frame whose background under the robot varies by more than this fraction of the robot's
     #: contrast (overlap with a vessel, say) is flagged ambiguous: reduced accuracy.

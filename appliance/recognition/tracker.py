@@ -58,6 +58,7 @@ from appliance.recognition.plausibility import (
     declutter,
     not_robot_like,
     off_its_images,
+    narrower_than_body,
     part_of_body,
 )
 from appliance.recognition.posture import Posture, ViewObservation
@@ -511,6 +512,7 @@ class PostureTracker:
                 or cut_by_edge(self.calibration, blobs)
                 or off_its_images(self.calibration, rec, blobs, self.settings)
                 or part_of_body(rec, self.body, self.settings)
+                or narrower_than_body(self.calibration, rec, blobs, self.body, self.settings)
                 or at_odds_with_track(rec, blobs, previous, self._track.length_mm if self._track else None,
                                       self.settings))
 

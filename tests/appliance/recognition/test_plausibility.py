@@ -17,6 +17,7 @@ from appliance.recognition import RecognitionSettings
 from appliance.recognition.plausibility import (
     at_odds_with_track,
     cut_by_edge,
+    narrower_than_body,
     not_robot_like,
     off_its_images,
     part_of_body,
@@ -199,6 +200,27 @@ def test_a_rod_much_shorter_than_the_body_is_only_part_of_it() -> None:
     assert part_of_body(_rec(None, length_mm=5.3), robot6, RecognitionSettings(estimator="paper")) is None
     assert part_of_body(_rec(None, length_mm=5.3), robot6,
                         SETTINGS.model_copy(update={"min_length_fraction": 0.1})) is None
+
+
+def test_an_object_much_narrower_than_the_body_is_not_the_robot() -> None:
+    calibration = _calibration(150.0)  # 150/256 mm per pixel at the isocentre, where _rec puts the centroid
+    mm_per_px = float(np.linalg.norm(calibration.p.source_mm)) / float(calibration.p.K[0, 0])
+    robot6 = BodyModel(length_mm=30.0, centroid_from_tail_mm=9.2, cone_length_mm=19.0, diameter_mm=5.0)
+    fraction = SETTINGS.min_width_fraction
+    just_under, just_over = (f * fraction * 5.0 / mm_per_px for f in (0.98, 1.02))
+    # Seed 5266249, robot 6: a stretch of vessel 1.4 mm wide in both views, unresolved axis (no length).
+    reason = narrower_than_body(calibration, _rec(None, length_mm=None), _blobs(1.0, 1.4 / mm_per_px), robot6, SETTINGS)
+    assert reason is not None and "1.4 mm wide" in reason and "5 mm diameter" in reason
+    assert narrower_than_body(calibration, _rec(None), _blobs(1.0, just_under), robot6, SETTINGS) is not None
+    assert narrower_than_body(calibration, _rec(None), _blobs(1.0, just_over), robot6, SETTINGS) is None
+    # The widest view decides: a view where a vessel or an end-on view narrows the blob does not refuse it.
+    one_wide = {"p": SimpleNamespace(peak=1.0, width_px=just_under * 0.3),
+                "q": SimpleNamespace(peak=1.0, width_px=just_over)}
+    assert narrower_than_body(calibration, _rec(None), one_wide, robot6, SETTINGS) is None
+    # Without a body, or with the paper's estimator, nothing is known to compare with.
+    assert narrower_than_body(calibration, _rec(None), _blobs(1.0, just_under), None, SETTINGS) is None
+    assert narrower_than_body(calibration, _rec(None), _blobs(1.0, just_under), robot6,
+                              RecognitionSettings(estimator="paper")) is None
 
 
 def test_declutter_places_the_centroid_and_both_tips_by_the_clean_view() -> None:

@@ -85,6 +85,20 @@ def test_a_robot_much_shorter_than_the_tracker_s_body_is_lost_not_placed(
     assert "against its 30 mm body" in posture.reason and "only part of the robot" in posture.reason
 
 
+def test_a_robot_much_narrower_than_the_tracker_s_body_is_lost_not_placed(
+        scene: tuple[Calibration, BiplaneRenderer]) -> None:
+    # The scene's robot is 2 mm across; a tracker told of a 5 mm thick body of the same length must not take
+    # the thin rod for it (a vessel stretch as thin was placed 27 mm from robot 6, seed 5266249).
+    calibration, renderer = scene
+    pair = renderer.render(RobotPose(np.array([3.0, -4.0, 5.0]), np.array([0.3, 0.5, 0.81])))
+    right = BodyModel(length_mm=10.0, centroid_from_tail_mm=4.4, cone_length_mm=5.7, diameter_mm=2.0)
+    thick = replace(right, diameter_mm=5.0)
+    assert PostureTracker(calibration, body=right).process(pair.images["p"], pair.images["q"]).ok
+    posture = PostureTracker(calibration, body=thick).process(pair.images["p"], pair.images["q"])
+    assert not posture.ok and posture.centroid_mm is None
+    assert "against the robot's 5 mm diameter" in posture.reason, posture.reason
+
+
 def test_paper_estimator_runs_end_to_end(scene: tuple[Calibration, BiplaneRenderer]) -> None:
     calibration, renderer = scene
     pose = RobotPose(np.array([3.0, -4.0, 5.0]), np.array([0.3, 0.5, 0.81]))
