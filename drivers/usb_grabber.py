@@ -15,7 +15,10 @@ frame or array refers to it. Transfers are 64 KiB unless the URL asks otherwise 
 frame streams in over many of them at the link's rate, and each is checked as it comes, so when the last
 byte is in (the frame's host time is stamped when the transfer holding it returns) only that transfer's
 bytes are left to check - with one transfer per frame, the whole frame's CRC (~250 us for 1 MB) would come
-after the stamp, inside the loop's latency. Corrupt headers, bad CRCs and truncated
+after the stamp, inside the loop's latency. For the same reason a frame's last transfer is kept small
+(``final_transfer``, 4 KiB): when the rest of the frame would fit one transfer, the driver asks for all but
+that much, so the frame does not end with a nearly full transfer (768 x 672 mono16 in 64 KiB transfers ends
+with 48 KiB, whose copy and CRC, ~25 us, came after the stamp; issue 8). Corrupt headers, bad CRCs and truncated
 frames are counted (``counters.corrupt``, details in :attr:`UsbGrabber.link_stats`) and skipped; an
 endpoint stall is cleared (CLEAR_FEATURE(HALT)) and the stream resumes at the next frame; a transfer
 timeout just means no bytes yet. A vanished device raises :class:`LinkLostError`.
@@ -54,6 +57,8 @@ log = logging.getLogger(__name__)
 
 #: Bulk transfer size unless the URL sets ``transfer_kib`` (see the module docstring).
 DEFAULT_TRANSFER_BYTES = 64 * 1024
+#: At most this many bytes of a frame spanning transfers come in its last transfer (see the module docstring).
+FINAL_TRANSFER_BYTES = 4 * 1024
 
 UDEV_HINT = ("install the udev rule config/udev/99-xray-grabber.rules (sudo cp it to /etc/udev/rules.d/, "
              "then `sudo udevadm control --reload && sudo udevadm trigger`) and add your user to group 'plugdev'")
@@ -145,7 +150,7 @@ class UsbGrabber(FrameSource):
 
     def __init__(self, device: usb.core.Device, *, plane: str | None = None, rate_hz: float | None = None,
                  exposure_s: float | None = None, transfer_size: int = DEFAULT_TRANSFER_BYTES, poll_s: float = 0.05,
-                 max_queued: int = 4, name: str | None = None) -> None:
+                 max_queued: int = 4, name: str | None = None, final_transfer: int = FINAL_TRANSFER_BYTES) -> None:
         serial = _serial_of(device)
         label = name or f"usb:{device.idVendor:04x}:{device.idProduct:04x}" + (f"/{serial}" if serial else "")
         self.device = device
@@ -160,6 +165,7 @@ class UsbGrabber(FrameSource):
         self.rate_hz = rate_hz
         self.exposure_s = exposure_s
         self.transfer_size = transfer_size
+        self.final_transfer = final_transfer
         self.poll_s = poll_s
         self.max_queued = max_queued
         # Transfers are read into pooled buffers lent to the assembler: a frame that fits one transfer is
@@ -272,7 +278,11 @@ class UsbGrabber(FrameSource):
         """One bulk transfer into a free pooled buffer, fed to the assembler; the frames it completes are
         queued, stamped with the time it returned. False when there was none (timeout, cleared stall).
         A method of its own so that no local name outlives it and keeps the buffer looking in use."""
-        buffer = self._transfers.take(self.transfer_size)
+        size = self.transfer_size
+        left = self._assembler.payload_left
+        if self.final_transfer < left <= size:
+            size = left - self.final_transfer   # the frame's last transfer is then a small one
+        buffer = self._transfers.take(size)
         try:
             n = self.device.read(proto.BULK_IN_ENDPOINT, buffer, timeout=timeout_ms)
         except usb.core.USBTimeoutError:

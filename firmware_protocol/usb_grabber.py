@@ -295,6 +295,11 @@ class FrameAssembler:
     def buffered(self) -> int:
         return len(self._buf) + (HEADER_SIZE + self._filled if self._header is not None else 0)
 
+    @property
+    def payload_left(self) -> int:
+        """Payload bytes of the frame being collected still to come (0 while looking for a header)."""
+        return self._header.payload_length - self._filled if self._header is not None else 0
+
     def reset(self) -> None:
         """Forget a partial frame (after a stall the device restarts at a frame boundary)."""
         self.stats.skipped_bytes += self.buffered

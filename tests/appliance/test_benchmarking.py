@@ -63,6 +63,9 @@ def test_every_frame_is_measured_and_tracked(bench_json: dict[str, Any]) -> None
     assert bench_json["config"]["image_size"] == [320, 320]
     sim = bench_json["simulation"]
     assert sim["pairs"] >= 1 and sim["latency_write_us"]["n"] >= 1
+    # The steady-state figure leaves out the first pair (a full-frame detection), reported on its own.
+    assert sim["first_pair_write_us"] > 0
+    assert 1 <= sim["latency_write_steady_us"]["n"] <= sim["latency_write_us"]["n"] - 1
 
 
 def test_profile_names_where_the_steady_step_spends_its_time(bench_json: dict[str, Any]) -> None:

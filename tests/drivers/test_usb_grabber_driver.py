@@ -42,6 +42,27 @@ def test_frames_arrive_intact_across_transfer_sizes(transfer_kib: int) -> None:
     assert stats.transfers >= 12 and stats.skipped_bytes == 0
 
 
+def test_a_frame_over_transfers_ends_with_a_small_transfer() -> None:
+    # 6144-byte payloads in 4 KiB transfers: the first carries the header and ~4 KiB, and the rest (~2 KiB)
+    # would be the last; with final_transfer=512 the driver asks for all but 512 bytes of it first.
+    backend, device, feed = fake()
+    sizes: list[int] = []
+    read = device.bulk_read
+
+    def recorded(buffer: memoryview, timeout_ms: int) -> int:
+        sizes.append(read(buffer, timeout_ms))
+        return sizes[-1]
+
+    device.bulk_read = recorded  # type: ignore[method-assign]
+    with open_source(f"{URL}?transfer_kib=4", backend=backend, final_transfer=512) as source:
+        got = [source.read(2.0) for _ in range(6)]
+    assert [f.number for f in got] == list(range(6))
+    assert all(np.array_equal(f.image, feed.frame(f.number).image) for f in got)
+    assert source.counters.corrupt == 0
+    # Three transfers a frame: 4096 bytes (the 40-byte header and payload), the rest less 512, then 512.
+    assert sizes[:18] == [4096, 40 + 6144 - 4096 - 512, 512] * 6
+
+
 def test_injected_faults_are_counted_survived_and_never_handed_on() -> None:
     backend, device, feed = fake()
     plan = {3: Fault.CORRUPT_HEADER, 5: Fault.BAD_CRC, 7: Fault.TRUNCATE, 9: Fault.STALL, 11: Fault.TIMEOUT,
