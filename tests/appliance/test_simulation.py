@@ -25,6 +25,7 @@ from appliance.simulation import SimResult, Simulation
 FPS = 30.0
 WATCHDOG_S = 0.2
 FAULT_AT_S = 1.0
+LOADED_ACK_TIMEOUT_MS = 1000.0   # see small_session
 
 
 def small_session(**sections: dict[str, Any]) -> Session:
@@ -33,11 +34,12 @@ def small_session(**sections: dict[str, Any]) -> Session:
     data["imaging"]["image_size"] = [256, 224]
     data["loop"] = {"pair_timeout_ms": 150, "frame_timeout_ms": 250}
     data["simulation"] = {"seed": 1, "settle_ms": 400}
-    # The amplifier fake answers from the simulated lab's process, which a loaded machine (load 9-16 on two
-    # cores: tests beside benchmarks) leaves without a core for over 3 x 50 ms: the link then "fails" before
-    # the fault under test. 3 x 150 ms rides that out; the fault paths' bounds below do not depend on it
-    # (the fake's own watchdog, 200 ms, zeroes the coils), and the driver's timeout has its own tests.
-    data["devices"]["amplifier"] = {**data["devices"]["amplifier"], "ack_timeout_ms": 150.0}
+    # The amplifier fake answers from the simulated lab's process, which a loaded machine (load 9-19 on two
+    # cores: tests beside benchmarks) leaves without a core for over 3 x 50 ms, and at load 12 for over
+    # 3 x 150 ms (measured): the link then "fails" (SET_CURRENTS or HEARTBEAT unanswered) before the fault
+    # under test. 3 x 1 s rides that out; the fault paths' bounds below do not depend on it (the fake's own
+    # watchdog, 200 ms of simulated time, zeroes the coils), and the driver's timeout has its own tests.
+    data["devices"]["amplifier"] = {**data["devices"]["amplifier"], "ack_timeout_ms": LOADED_ACK_TIMEOUT_MS}
     for key, value in sections.items():
         data[key] = {**data.get(key, {}), **value}
     return session_from_mapping(data, config_path("sim.yaml"))

@@ -19,6 +19,9 @@ def small_sim_file(tmp_path: Path) -> Path:
     data = copy.deepcopy(read_yaml(config_path("sim.yaml")))
     data["imaging"]["image_size"] = [256, 224]
     data["devices"]["ots"] = {"kind": "none"}
+    # Not a test of the link's timing: on a loaded 2-core machine the simulated lab's process answers later
+    # than sim.yaml's 3 x 50 ms ack time-out.
+    data["devices"]["amplifier"] = {**data["devices"]["amplifier"], "ack_timeout_ms": 1000.0}
     # Relative names resolve beside the session file first, then in config/.
     path = tmp_path / "small-sim.yaml"
     path.write_text(yaml.safe_dump(data), encoding="utf-8")
