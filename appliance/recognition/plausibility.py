@@ -260,7 +260,7 @@ def narrower_than_body(calibration: Calibration, rec: Reconstruction, blobs: dic
     profile of a cylinder gives exactly the diameter, blur widens it and a vessel under the robot widens it
     more. So where both views' blobs, scaled to mm at the reconstructed centroid, are much narrower than
     the known body, the object is not the robot, however well its images correspond. This holds where
-    the length cannot judge it: seed 5266249, robot 6 (5 mm across), cold pose 5 paired a 1.4 mm wide
+    the length cannot judge it: seed 5266249, robot 6 (5 mm across), cold pose 5 paired a 0.8 mm wide
     stretch of vessel lying in an epipolar plane in both views (axis unresolved, so no length) and
     reported it ok (ambiguous) 27 mm from the robot: its widest view measured 0.16 of the body's
     diameter, where every frame of the robot on dev seeds 1-6 (cold, all robots, and seed 1 tracked;
