@@ -62,6 +62,9 @@ def main() -> int:
                 print(f"run {run} {arm}: failed\n{out.stderr[-800:]}")
                 continue
             rows = np.array(json.loads(line[4:]))
+            if len(rows) < 10:
+                print(f"run {run} {arm}: only {len(rows)} pairs (the session stopped early)\n{out.stderr[-400:]}")
+                continue
             load = os.getloadavg()[0]
             first, later = rows[1:6], np.median(rows[6:], axis=0)
             summary[arm].append(first.mean(axis=0) - later)
