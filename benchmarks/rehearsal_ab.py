@@ -67,13 +67,13 @@ def main() -> int:
                 continue
             load = os.getloadavg()[0]
             first, later = rows[1:6], np.median(rows[6:], axis=0)
-            summary[arm].append(first.mean(axis=0) - later)
+            summary[arm].append(np.median(first, axis=0) - later)
             print(f"run {run} {arm} (load {load:.1f}): pairs 1-5 " + "; ".join(
                 " ".join(f"{v:.0f}" for v in r) for r in first) + " | later p50 " + " ".join(f"{v:.0f}" for v in later))
     for arm, excess in summary.items():
         if excess:
-            print(f"{arm}: pairs 1-5 mean minus later p50, mean over runs: "
-                  + " ".join(f"{v:.0f}" for v in np.mean(excess, axis=0)))
+            print(f"{arm}: pairs 1-5 median minus later p50, median over runs: "
+                  + " ".join(f"{v:.0f}" for v in np.median(excess, axis=0)))
     return 0
 
 
