@@ -53,6 +53,9 @@ __all__ = ["FrameReport", "ListenerError", "LoopListener", "LoopSettings", "Loop
 
 #: Recognition noise allowed on top of the robot's reach when gating a new posture (mm).
 JUMP_MARGIN_MM = 2.0
+#: Tracked frames (and control steps) :meth:`Orchestrator._rehearse` runs at start-up: more than the 8 calls
+#: after which CPython 3.11 quickens a function's bytecode.
+REHEARSAL_TRACKED_PASSES = 12
 
 
 @dataclass(frozen=True)
@@ -384,17 +387,42 @@ class Orchestrator:
 
     # -- helpers ------------------------------------------------------------------------------------
     def _rehearse(self, pair: BiplanePair) -> None:
-        """Recognise the start-up pair twice (a detection, then a tracked frame) and forget it. A kernel
-        called with argument types its warm-up did not cover (read-only frames from a grabber, a view of
-        an array) is compiled at its first call, holding the GIL for up to seconds: the amplifier's
-        heartbeat and the grabbers' readers would stall with the loop. This makes that call now."""
+        """Run the step's work on the start-up pair and forget it, before the loop's clock starts.
+
+        Recognition: a detection, then :data:`REHEARSAL_TRACKED_PASSES` tracked frames. A kernel called with
+        argument types its warm-up did not cover (read-only frames from a grabber, a view of an array) is
+        compiled at its first call, holding the GIL for up to seconds: the amplifier's heartbeat and the
+        grabbers' readers would stall with the loop. And CPython runs a function's bytecode unspecialised
+        for its first calls (3.11 quickens a code object after 8): the tracked path's Python, the control
+        chain's and the amplifier driver's would run so for the session's first pairs (issue 8: pairs 2-4
+        slower than the rest). Control: the follower (reset after), a scratch supervisor of the same
+        settings (the session's keeps no trace), the allocation (no state), and the driver's command path
+        up to the write (nothing is sent: :meth:`~drivers.amplifier.Amplifier.rehearse_command`)."""
         began = time.perf_counter()
         t = self.clock()
-        for k in range(2):
-            self.tracker.process(pair.p.image, pair.q.image, frame=pair.number, t=t + k / self.settings.fps)
+        dt = 1.0 / self.settings.fps
+        posture = None
+        for k in range(1 + REHEARSAL_TRACKED_PASSES):
+            posture = self.tracker.process(pair.p.image, pair.q.image, frame=pair.number, t=t + k * dt)
         self.tracker.reset()
-        log.debug("start-up pair recognised in %.3f s (compilation of what the warm-ups missed)",
-                  time.perf_counter() - began)
+        centroid = posture.centroid_mm if posture is not None and posture.centroid_mm is not None else None
+        if centroid is None:
+            centroid = self.follower.points[0]
+        axis = posture.direction if posture is not None and posture.direction is not None else None
+        if axis is None:
+            axis = self.follower.tangent_at(0.0)
+        xyz = _xyz(centroid)
+        safety = SafetySupervisor(self.safety.settings)
+        commanded = np.zeros(self._n)
+        for k in range(REHEARSAL_TRACKED_PASSES):
+            command = self.follower.command(centroid, axis, t + k * dt)
+            decision = safety.update(t + k * dt, True, command.field_T, command.force_N, 0.0)
+            self.allocator.allocate_aligned(xyz, decision.field_T.tolist(), decision.force_N.tolist(),
+                                            self.moment_am2, commanded, dt, zero_field_direction=(0.0, 0.0, 1.0))
+        self.follower.reset()
+        self.amplifier.rehearse_command()
+        log.debug("start-up pair rehearsed in %.3f s (compilation of what the warm-ups missed, bytecode "
+                  "specialisation)", time.perf_counter() - began)
 
     def _notify_safety_events(self) -> None:
         """The supervisor's changes of mode since the last call, to the listeners."""

@@ -33,7 +33,7 @@ import logging
 import math
 import threading
 import time
-from typing import Callable, Sequence, TypeVar
+from typing import Callable, Literal, Sequence, TypeVar, overload
 
 import numpy as np
 import serial
@@ -91,6 +91,9 @@ Listener = Callable[[AmplifierEvent], None]
 
 _READ_POLL_S = 0.005          # port read timeout: bounds how late a deadline is noticed
 _SHUTDOWN_RESIDUAL_A = 0.05   # measured current regarded as zero before the output is disabled
+#: How many times a start-up runs the command path without writing (:meth:`Amplifier.rehearse_command`):
+#: more than the 8 calls after which CPython 3.11 quickens a function's bytecode.
+REHEARSAL_PASSES = 16
 
 
 class Amplifier:
@@ -258,15 +261,37 @@ class Amplifier:
             self.configure_limits(self._pending_limits)
             self._pending_limits = None
 
+    def rehearse_command(self, passes: int = REHEARSAL_PASSES) -> None:
+        """Run :meth:`set_currents` up to its write (the vector's checks, the limit check, the frame's
+        encoding) ``passes`` times on zero currents, writing nothing and changing no state.
+
+        For a loop's start-up: CPython runs a function's bytecode unspecialised for its first calls (3.11's
+        adaptive interpreter quickens a code object after 8), so without this the first commands of a
+        session pay that on their way to the wire."""
+        zeros = np.zeros(self.info.channels)
+        for _ in range(passes):
+            self.set_currents(zeros, dry_run=True)
+
     def heartbeat(self) -> None:
         self._transact(Heartbeat(), Ack)
 
     def status(self) -> AmplifierStatus:
         return AmplifierStatus.from_reply(self._transact(GetStatus(), Status))
 
-    def set_currents(self, currents_a: Sequence[float] | np.ndarray) -> SetResult:
+    @overload
+    def set_currents(self, currents_a: Sequence[float] | np.ndarray) -> SetResult: ...
+
+    @overload
+    def set_currents(self, currents_a: Sequence[float] | np.ndarray, *, dry_run: Literal[False]) -> SetResult: ...
+
+    @overload
+    def set_currents(self, currents_a: Sequence[float] | np.ndarray, *, dry_run: Literal[True]) -> None: ...
+
+    def set_currents(self, currents_a: Sequence[float] | np.ndarray, *, dry_run: bool = False) -> SetResult | None:
         """Command every channel at once (A). The vector is validated, scaled to the host-side limits,
-        sent, and acknowledged with the measured currents; raises on NAK, fault or silence.
+        sent, and acknowledged with the measured currents; raises on NAK, fault or silence. With
+        ``dry_run`` everything up to the write runs (checks, limits, encoding) and nothing is sent or
+        changed: None (:meth:`rehearse_command`).
 
         The path to the write is plain float arithmetic on the channels' values and one struct for the
         frame (no numpy calls, no message object): it is what the loop waits for between the allocation
@@ -288,6 +313,9 @@ class Amplifier:
         commanded, current_scale, slew_scale = limit_current_list(
             values, self._previous, now - self._previous_t, self.limits)
         command_ma = [int(v * 1000.0) for v in commanded]   # int() rounds towards zero, like the wire
+        if dry_run:
+            encode_set_currents(command_ma, 0)
+            return None
         reply, seq, attempts, written_at = self._exchange(
             MsgType.SET_CURRENTS, lambda seq: encode_set_currents(command_ma, seq), SetCurrentsReply)
         round_trip_s = self._clock() - now

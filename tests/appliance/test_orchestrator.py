@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from appliance.control import Mode
 from appliance.config_io import config_path, read_yaml
 from appliance.device_factory import perturbed_calibration
 from appliance.errors import DeviceFaultError, InputDataError
@@ -237,3 +238,26 @@ def test_a_posture_out_of_the_robots_reach_is_rejected_as_lost_and_the_speed_is_
         assert speed == pytest.approx(expected, rel=1e-12)
         checked += 1
     assert checked >= len(by_step) - 5
+
+
+def test_the_start_up_rehearsal_leaves_the_follower_and_the_supervisor_as_new() -> None:
+    """The rehearsal runs the follower, a supervisor and the allocation a dozen times on the start-up pair
+    (bytecode specialisation before the loop's clock): the session's follower is reset after it and its
+    supervisor never sees it, so the first step is the session's first for both."""
+    holder: dict[str, Any] = {}
+    seen: dict[str, Any] = {}
+
+    class AtStart(LoopListener):
+        def on_start(self, t_s: float, info: dict[str, Any]) -> None:
+            orchestrator = holder["sim"].orchestrator
+            fresh = type(orchestrator.follower)(orchestrator.follower.points)
+            seen["follower_state"] = orchestrator.follower._state.copy()
+            seen["fresh_state"] = fresh._state.copy()
+            safety = orchestrator.safety
+            seen["safety"] = (safety.mode, list(safety.events), safety._lost, safety._reacquired)
+
+    with Simulation(small_session(), [AtStart()]) as sim:
+        holder["sim"] = sim
+        sim.run(0.2)
+    np.testing.assert_array_equal(seen["follower_state"], seen["fresh_state"])   # NaN where a new one has NaN
+    assert seen["safety"] == (Mode.RUN, [], 0, 0)

@@ -259,6 +259,28 @@ def test_invalid_vectors_are_refused_before_anything_is_sent(bad) -> None:
     port.assert_done()
 
 
+def test_a_dry_run_and_the_rehearsal_send_nothing_and_leave_the_next_command_as_it_was() -> None:
+    """The start-up's rehearsal of the command path writes nothing (the scripted port refuses any write not
+    in its script) and keeps the sequence number and the slew state: the command after it is the same
+    frame, with the same sequence number, as without it."""
+    request = encode_message(SetCurrents((1500, -250, 0)), 4)
+    reply = encode_message(SetCurrentsReply(State.ENABLED, Fault.NONE, 0, (1400, -240, 1)), 4)
+    amp, port = open_amp(connect() + [(encode_message(Enable(), 3), ack(MsgType.ENABLE, 3)), (request, reply)])
+    amp.enable()
+    assert amp.set_currents([9.0, -9.0, 9.0], dry_run=True) is None
+    amp.rehearse_command()
+    result = amp.set_currents([1.5, -0.25, 0.0])
+    assert result.seq == 4 and not result.scaled
+    port.assert_done()
+
+
+def test_a_dry_run_still_refuses_an_invalid_vector() -> None:
+    amp, port = open_amp(connect())
+    with pytest.raises(CurrentCommandError):
+        amp.set_currents([1.0, float("nan"), 0.0], dry_run=True)
+    port.assert_done()
+
+
 def test_shutdown_ramps_to_zero_then_disables_then_closes() -> None:
     zero = encode_message(SetCurrents((0, 0, 0)), 5)
     amp, port = open_amp(connect() + [
