@@ -271,11 +271,12 @@ def _capsule_rows(h, w, ox, oy, ax, ay, s0, s1, tmax, x_lo, x_hi):  # pragma: no
 
 
 @kernel
-def _features_tail(out, weights, cap, sigma, levels, head_ramp_ratio, head_min_ramp_px, wx, wy):  # pragma: no cover
-    """The weighted features of ``weights`` (whose origin is image pixel ``wx, wy``) into ``out`` (search_view's
-    layout), as :func:`.roi_kernels.search_view` computes them for its chosen blob; False if the weights
-    sum to nothing."""
-    status, f = view_kernels.weighted_view_features(weights, cap, sigma, levels)
+def _features_tail(out, weights, cap, sigma, levels, head_ramp_ratio, head_min_ramp_px, wx, wy, sums):  # pragma: no cover
+    """The weighted features of ``weights`` (whose origin is image pixel ``wx, wy``; ``sums`` their
+    :func:`.view_kernels.moments_and_capped`, see :func:`.view_kernels.features_of_moments`) into ``out``
+    (search_view's layout), as :func:`.roi_kernels.search_view` computes them for its chosen blob; False if
+    the weights sum to nothing."""
+    status, f = view_kernels.features_of_moments(weights, cap, sigma, levels, sums)
     if not status:
         return False
     n = levels.size
@@ -399,7 +400,9 @@ def lean_view(image, coarse, fy, fx, log_table, g, prev, po, qu, qv, sigma, p, n
     at_row = _carve(at_wx, 4 * ww)
     at_mask = _carve(at_row, 4 * ws)
     at_support = _carve(at_mask, n_px)
-    if _carve(at_support, n_px) > work.size or n_px > weights_flat.size:
+    at_marks = _carve(at_support, n_px)
+    at_near = _carve(at_marks, 4 * hh * (ww + 1))
+    if _carve(at_near, n_px) > work.size or n_px > weights_flat.size:
         return False, 0, 0, 0, 0
     a = work[at_a:at_a + 4 * n_px].view(np.float32).reshape((hh, ww))
     tmp = work[at_tmp:at_tmp + 4 * n_px].view(np.float32).reshape((hh, ww))
@@ -417,6 +420,19 @@ def lean_view(image, coarse, fy, fx, log_table, g, prev, po, qu, qv, sigma, p, n
     _capsule_rows(hh, ww, ox, oy, ax, ay, bs0 - ga_s, bs1 + ga_s, bt + ga_t, xa0, xa1)
     _capsule_rows(hh, ww, ox, oy, ax, ay, bs0 - gs_s, bs1 + gs_s, bt + gs_t, xs0, xs1)
     _capsule_rows(hh, ww, ox, oy, ax, ay, bs0, bs1, bt, xb0, xb1)
+    # The log table's lines over the gray levels of the grown capsule (as _warm_log_table over the ROI, which
+    # search_pair leaves to this pass where it asks for it: fewer pixels, the same lines).
+    lo_v, hi_v = 65535, 0
+    for y in range(hh):
+        src = image[y + y0]
+        for x in range(xa0[y], xa1[y]):
+            v = int(src[x + x0])
+            lo_v = min(lo_v, v)
+            hi_v = max(hi_v, v)
+    total = np.float32(0.0)
+    for i in range(lo_v - lo_v % _TABLE_LINE, min(hi_v + _TABLE_LINE, log_table.size), _TABLE_LINE):
+        total += log_table[i]
+    out[OUT_TABLE_WARMED] += float(total)
     # bilinear_columns' numbers, into the workspace.
     for x in range(ww):
         s = min(max((x + x0 + 0.5) / fx - 0.5, 0.0), ws - 1.0)
@@ -472,6 +488,7 @@ def lean_view(image, coarse, fy, fx, log_table, g, prev, po, qu, qv, sigma, p, n
     side = view_kernels._side_baseline(smooth, 0, 0, hh, ww, ox, oy, ax, ay, bs0, nside, t_max + pad + 1.0)
     count = 0
     in_lo, in_hi, in_t = np.inf, -np.inf, 0.0
+    by0, by1, bx0, bx1 = hh, -1, ww, -1  # the body's bounding box
     for y in range(hh):
         gy = y - oy
         srow, mrow = smooth[y], mask[y]
@@ -485,6 +502,7 @@ def lean_view(image, coarse, fy, fx, log_table, g, prev, po, qu, qv, sigma, p, n
                 mrow[x] = 1
                 mys[count], mxs[count] = y, x
                 count += 1
+                by0, by1, bx0, bx1 = min(by0, y), max(by1, y), min(bx0, x), max(bx1, x)
                 t_ = abs(-gx * ay + gy * ax)
                 in_lo, in_hi, in_t = min(in_lo, s_), max(in_hi, s_), max(in_t, t_)
     if count == 0 or abs(count - last_count) > LEAN_CHANGE * last_count:
@@ -515,15 +533,38 @@ def lean_view(image, coarse, fy, fx, log_table, g, prev, po, qu, qv, sigma, p, n
     view_kernels._fill_values(smooth, 0, 0, hh, ww, support, sy0, sy1, sx0, sx1, fill_rows, fill_cols,
                               abs(ax) < abs(ay), background)
     # The weights near the body, their window, and how much the background under the body varies.
-    near, ny0, nx0 = view_kernels._dilated_box(mys, mxs, count, near_hw, hh, ww)
-    nh, nw = near.shape
+    # (view_kernels._dilated_box's dilation of the body, from its mask's runs on its bounding box grown by the
+    # element's radius, the marks' prefix sums taken in the same pass as the support's test.)
+    rad = (near_hw.size - 1) // 2
+    ny0, nx0 = max(by0 - rad, 0), max(bx0 - rad, 0)
+    nh, nw = min(by1 + rad + 1, hh) - ny0, min(bx1 + rad + 1, ww) - nx0
+    marks = work[at_marks:at_marks + 4 * nh * (nw + 1)].view(np.int32).reshape((nh, nw + 1))
+    near = work[at_near:at_near + nh * nw].reshape((nh, nw))
+    for y in range(nh):
+        mrow = marks[y]
+        for x in range(nw + 1):
+            mrow[x] = 0
+    for y in range(nh):
+        mrow = mask[ny0 + y]
+        x = nx0
+        while x < nx0 + nw:
+            while x < nx0 + nw and mrow[x] == 0:
+                x += 1
+            start = x
+            while x < nx0 + nw and mrow[x] != 0:
+                x += 1
+            if start < nx0 + nw:
+                view_kernels._mark_run(marks, y, start - nx0, x - nx0, near_hw)
     ky0, ky1, kx0, kx1 = hh, -1, ww, -1
     bmin, bmax = np.inf, -np.inf
     for y in range(nh):
+        acc = 0
+        mrow = marks[y]
         for x in range(nw):
+            acc += mrow[x]
             yy, xx = ny0 + y, nx0 + x
-            inside = (near[y, x] and yy >= sy0 and yy < sy1 and xx >= sx0 and xx < sx1
-                      and support[yy - sy0, xx - sx0])
+            inside = (acc > 0 and yy >= sy0 and yy < sy1 and xx >= sx0 and xx < sx1
+                      and support[yy - sy0, xx - sx0] != 0)
             near[y, x] = 1 if inside else 0
             if inside:
                 ky0, ky1, kx0, kx1 = min(ky0, yy), max(ky1, yy), min(kx0, xx), max(kx1, xx)
@@ -551,7 +592,15 @@ def lean_view(image, coarse, fy, fx, log_table, g, prev, po, qu, qv, sigma, p, n
             if near[y, x]:
                 yy, xx = ny0 + y, nx0 + x
                 weights[yy - ky0, xx - kx0] = a[yy, xx] - background[yy, xx]
-    m00, m10, m01, mu20, mu02, mu11 = view_kernels.moments(weights)
+    cap = cap_fraction * height if cap_fraction < 1.0 else np.inf
+    # The weights' moments once, for the refinement's numbers and the features (and the capped ones' with them:
+    # moments_and_capped's first six are moments').
+    if math.isfinite(cap):
+        sums = view_kernels.moments_and_capped(weights, cap)
+    else:
+        m00, m10, m01, mu20, mu02, mu11 = view_kernels.moments(weights)
+        sums = (m00, m10, m01, mu20, mu02, mu11, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    m00, m10, m01, mu20, mu02, mu11 = sums[0], sums[1], sums[2], sums[3], sums[4], sums[5]
     if not m00 > 0.0:
         return False, 0, 0, 0, 0
     _, minor, _, _ = view_kernels._principal(mu20, mu02, mu11, 1)
@@ -560,9 +609,8 @@ def lean_view(image, coarse, fy, fx, log_table, g, prev, po, qu, qv, sigma, p, n
     for i in range(roi_kernels.REFINED_SIZE):
         out[o + Rf + i] = sc[i]
     out[o + roi_kernels.SIGMA] = sigma
-    cap = cap_fraction * height if cap_fraction < 1.0 else np.inf
     if not _features_tail(out[o:o + SEARCH_SIZE], weights, cap, sigma, levels, head_ramp_ratio, head_min_ramp_px,
-                          x0 + kx0, y0 + ky0):
+                          x0 + kx0, y0 + ky0, sums):
         return False, 0, 0, 0, 0
     if not math.hypot(out[o + roi_kernels.CENTROID] - qu, out[o + roi_kernels.CENTROID + 1] - qv) <= gate_px:
         return False, 0, 0, 0, 0
@@ -790,7 +838,6 @@ def search_pair(image_p, image_q, coarse_p, coarse_q, log_table, g, params, ring
             return PAIR_PER_VIEW
         image = image_p if view == 0 else image_q
         coarse = coarse_p if view == 0 else coarse_q
-        warmed += _warm_log_table(image, y0, y1, x0, x1, log_table)
         out[OUT_TABLE_WARMED] = warmed
         view_out = out[o:o + SEARCH_SIZE]
         lean = False
@@ -804,8 +851,12 @@ def search_pair(image_p, image_q, coarse_p, coarse_q, log_table, g, params, ring
                 image, coarse, inp[v + V_FY], inp[v + V_FX], log_table, g, prev, o, qu, qv, inp[v + V_KNOWN_SIGMA],
                 params, near_hw, levels, axis_saturation, head_ramp_ratio, head_min_ramp_px, gate_px, out, o, work,
                 weights_buf[view], masks_buf[view])
+            warmed = out[OUT_TABLE_WARMED]  # (the lean pass warms the log table over its capsule)
             if lean:
                 x0, y0 = lx0, ly0
+        if not lean:
+            warmed += _warm_log_table(image, y0, y1, x0, x1, log_table)
+            out[OUT_TABLE_WARMED] = warmed
         found, via = lean, FOUND_BY_LEAN if lean else FOUND_BY_ROI
         if not found and inp[IN_TIGHT] != 0.0 and inp[v + V_HAS_OUTLINE] != 0.0 and inp[v + V_KNOWN_SIGMA] > 0.0:
             # The tight ROI first, where the last frame's prediction error allows one (NaN: it does not) and the
