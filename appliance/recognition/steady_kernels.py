@@ -271,7 +271,8 @@ def _capsule_rows(h, w, ox, oy, ax, ay, s0, s1, tmax, x_lo, x_hi):  # pragma: no
 
 
 @kernel
-def _features_tail(out, weights, cap, sigma, levels, head_ramp_ratio, head_min_ramp_px, wx, wy, sums):  # pragma: no cover
+def _features_tail(out, weights, cap, sigma, levels, head_ramp_ratio, head_min_ramp_px, wx, wy,
+                   sums):  # pragma: no cover - compiled
     """The weighted features of ``weights`` (whose origin is image pixel ``wx, wy``; ``sums`` their
     :func:`.view_kernels.moments_and_capped`, see :func:`.view_kernels.features_of_moments`) into ``out``
     (search_view's layout), as :func:`.roi_kernels.search_view` computes them for its chosen blob; False if
@@ -809,7 +810,8 @@ def _place_body(out, inp, G):  # pragma: no cover - compiled
 
 @kernel
 def search_pair(image_p, image_q, coarse_p, coarse_q, log_table, g, params, ring_outer, ring_inner, near_hw,
-                levels, search_settings, G, inp, prev, weights_buf, masks_buf, work, out):  # pragma: no cover - compiled
+                levels, search_settings, G, inp, prev, weights_buf, masks_buf, work,
+                out):  # pragma: no cover - compiled
     """Both views' steady-state search and the reconstruction's front (see the module docstring).
 
     ``search_settings``: ``[detect_sigma, smooth_gain, floor, min_pixels, max_tries, max_candidates,

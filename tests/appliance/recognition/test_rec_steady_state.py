@@ -425,7 +425,7 @@ def test_lean_pass_reads_nothing_of_its_workspace_it_did_not_write(views: dict[s
     monkeypatch.setattr(SteadyPair, "search", dirty_search)
     frames = _two_trackers(views, calibration, 1, centres, (-0.7, 0.2, 0.68), RecognitionSettings(dark_level=dark),
                            RecognitionSettings(dark_level=dark),
-                           lambda tracker: tracker._pair.lean_views() if tracker.last_search == "roi" else (False, False))
+                           lambda t: t._pair.lean_views() if t.last_search == "roi" else (False, False))
     assert dirtied and all(used == (True, True) for _, _, used in frames[2:])
     for clean, dirty, _ in frames:
         _same(clean, dirty, skip=("timings_us",))
