@@ -271,11 +271,13 @@ def _capsule_rows(h, w, ox, oy, ax, ay, s0, s1, tmax, x_lo, x_hi):  # pragma: no
 
 
 @kernel
-def _features_tail(out, weights, cap, sigma, levels, head_ramp_ratio, head_min_ramp_px, wx, wy):  # pragma: no cover
-    """The weighted features of ``weights`` (whose origin is image pixel ``wx, wy``) into ``out`` (search_view's
-    layout), as :func:`.roi_kernels.search_view` computes them for its chosen blob; False if the weights
-    sum to nothing."""
-    status, f = view_kernels.weighted_view_features(weights, cap, sigma, levels)
+def _features_tail(out, weights, cap, sigma, levels, head_ramp_ratio, head_min_ramp_px, wx, wy,
+                   sums):  # pragma: no cover - compiled
+    """The weighted features of ``weights`` (whose origin is image pixel ``wx, wy``; ``sums`` their
+    :func:`.view_kernels.moments_and_capped`, see :func:`.view_kernels.features_of_moments`) into ``out``
+    (search_view's layout), as :func:`.roi_kernels.search_view` computes them for its chosen blob; False if
+    the weights sum to nothing."""
+    status, f = view_kernels.features_of_moments(weights, cap, sigma, levels, sums)
     if not status:
         return False
     n = levels.size
@@ -325,32 +327,48 @@ def _extent(out, o, mask, mx, my):  # pragma: no cover - compiled
     out[o + R_EXTENT], out[o + R_EXTENT + 1], out[o + R_EXTENT + 2] = s_lo, s_hi, t_max
 
 
+#: Bytes of the lean pass's workspace (``work``: its window's attenuation, row pass, smoothed attenuation,
+#: background, the body's pixel list, mask and support, the capsule's row tables and the interpolation's
+#: columns, carved out of one buffer that :class:`.steady_state.SteadyPair` owns and passes every frame, so
+#: that a lean view allocates none of them: issue 8). A window needing more (~130 000 px) takes the ROI search.
+LEAN_WORK_BYTES = 1 << 22
+
+
+@kernel
+def _carve(at, nbytes):  # pragma: no cover - compiled
+    """The workspace offset after ``nbytes`` bytes from ``at``, rounded up to a cache line."""
+    end = at + nbytes
+    return (end + 63) // 64 * 64
+
+
 @kernel
 def lean_view(image, coarse, fy, fx, log_table, g, prev, po, qu, qv, sigma, p, near_hw, levels, cap_fraction,
-              head_ramp_ratio, head_min_ramp_px, gate_px, out, o):  # pragma: no cover - compiled
+              head_ramp_ratio, head_min_ramp_px, gate_px, out, o, work, weights_flat, body_flat):  # pragma: no cover
     """The lean steady-state pass of one view (prototype): the body found again around where the last
     frame's was, without candidates, labelling, the ring median or flood fills.
 
     The last frame's body (``prev[po:]``, this module's view layout: its axis, extent about its centroid,
     contrast, pixel count, baseline) moved to ``qu, qv`` (its centroid moved by the predicted motion)
     gives a capsule; the attenuation and its 5x5 smoothing are computed on a capsule grown by
-    :data:`LEAN_GROW_ALONG_PX` and :data:`LEAN_GROW_ACROSS_PX` only (row by row). The body is what
-    stands above the attenuation beside it (:func:`.view_kernels._side_baseline`) by the refinement's level, inside the capsule; its support,
-    the background interpolated under it (:func:`.view_kernels._fill_values`), the weights near it and
-    the features follow as in the refinement and :func:`_features_tail`. The baseline (the ring median)
-    is the last frame's. Returns ``(found, weights, mask, x0, y0)``; not found where a check fails (the
-    body reaches the capsule's end or side, its length, width, pixels or contrast changed, the
-    background under it varies: a vessel under the body, a body that changed), and the caller runs the
-    full ROI search. ``out[o:]`` gets search_view's layout with the window relative to ``x0, y0``."""
-    empty_w = np.zeros((0, 0), dtype=np.float32)
-    empty_m = np.zeros((0, 0), dtype=np.uint8)
+    :data:`LEAN_GROW_ALONG_PX` and :data:`LEAN_GROW_ACROSS_PX` only, row by row in one sweep (each row's
+    attenuation, its row pass, and the column pass of the row two above). The body is what stands above
+    the attenuation beside it (:func:`.view_kernels._side_baseline`) by the refinement's level, inside the
+    capsule; its support, the background interpolated under it (:func:`.view_kernels._fill_values`), the
+    weights near it and the features follow as in the refinement and :func:`_features_tail`. The baseline
+    (the ring median) is the last frame's. Every window-sized array is a part of ``work`` (uint8,
+    :data:`LEAN_WORK_BYTES`); the weights and the body's mask are written row-major into ``weights_flat``
+    and ``body_flat`` (the caller's buffers). Returns ``(found, rows, columns, x0, y0)``, the weights' shape;
+    not found where a check fails (the body reaches the capsule's end or side, its length, width, pixels or
+    contrast changed, the background under it varies: a vessel under the body, a body that changed; the
+    window does not fit the workspace), and the caller runs the full ROI search. ``out[o:]`` gets
+    search_view's layout with the window relative to ``x0, y0``."""
     A, E, Rf = roi_kernels.AXIS, R_EXTENT, roi_kernels.REFINED
     ax, ay = prev[po + A], prev[po + A + 1]
     s_lo, s_hi, t_max = prev[po + E], prev[po + E + 1], prev[po + E + 2]
     last_height, baseline, last_count = prev[po + Rf + 4], prev[po + Rf + 5], prev[po + Rf + 12]
     if not (math.isfinite(ax) and math.isfinite(ay) and math.isfinite(s_lo) and math.isfinite(s_hi)
             and math.isfinite(qu) and math.isfinite(qv) and last_count > 0 and last_height > 0 and sigma > 0):
-        return False, empty_w, empty_m, 0, 0
+        return False, 0, 0, 0, 0
     dilate_px, support_sigma, support_fraction = int(p[6]), p[7], p[8]
     smooth_gain, fill_rows, fill_cols = p[9], int(p[10]), int(p[11])
     pad = dilate_px + 1.0
@@ -367,47 +385,108 @@ def lean_view(image, coarse, fy, fx, log_table, g, prev, po, qu, qv, sigma, p, n
     x0, y0 = math.floor(lo_x), math.floor(lo_y)
     x1, y1 = math.ceil(hi_x) + 1, math.ceil(hi_y) + 1
     if x0 < 0 or y0 < 0 or x1 > W or y1 > H:
-        return False, empty_w, empty_m, 0, 0  # near the detector's edge: the ROI search knows what to do
+        return False, 0, 0, 0, 0  # near the detector's edge: the ROI search knows what to do
     hh, ww = y1 - y0, x1 - x0
+    ws = coarse.shape[1]
+    n_px = hh * ww
+    # The workspace's parts (byte offsets, each on a cache line).
+    at_a = 0
+    at_tmp = _carve(at_a, 4 * n_px)
+    at_smooth = _carve(at_tmp, 4 * n_px)
+    at_ys = _carve(at_smooth, 4 * n_px)
+    at_xs = _carve(at_ys, 8 * n_px)
+    at_rows = _carve(at_xs, 8 * n_px)
+    at_cols = _carve(at_rows, 8 * 6 * hh)
+    at_wx = _carve(at_cols, 8 * 2 * ww)
+    at_row = _carve(at_wx, 4 * ww)
+    at_mask = _carve(at_row, 4 * ws)
+    at_support = _carve(at_mask, n_px)
+    at_marks = _carve(at_support, n_px)
+    at_near = _carve(at_marks, 4 * hh * (ww + 1))
+    if _carve(at_near, n_px) > work.size or n_px > weights_flat.size:
+        return False, 0, 0, 0, 0
+    a = work[at_a:at_a + 4 * n_px].view(np.float32).reshape((hh, ww))
+    tmp = work[at_tmp:at_tmp + 4 * n_px].view(np.float32).reshape((hh, ww))
+    smooth = work[at_smooth:at_smooth + 4 * n_px].view(np.float32).reshape((hh, ww))
+    mys = work[at_ys:at_ys + 8 * n_px].view(np.int64)
+    mxs = work[at_xs:at_xs + 8 * n_px].view(np.int64)
+    tables = work[at_rows:at_rows + 8 * 6 * hh].view(np.int64).reshape((6, hh))
+    xa0, xa1, xs0, xs1, xb0, xb1 = tables[0], tables[1], tables[2], tables[3], tables[4], tables[5]
+    columns = work[at_cols:at_cols + 8 * 2 * ww].view(np.int64).reshape((2, ww))
+    ix0, ix1 = columns[0], columns[1]
+    ucols = work[at_cols:at_cols + 8 * 2 * ww].view(np.uint64).reshape((2, ww))  # (the same, unsigned)
+    wxs = work[at_wx:at_wx + 4 * ww].view(np.float32)
+    row = work[at_row:at_row + 4 * ws].view(np.float32)
+    mask = work[at_mask:at_mask + n_px].reshape((hh, ww))
     ox, oy = qu - x0, qv - y0
-    xa0 = np.empty(hh, dtype=np.int64)
-    xa1 = np.empty(hh, dtype=np.int64)
-    xs0 = np.empty(hh, dtype=np.int64)
-    xs1 = np.empty(hh, dtype=np.int64)
-    xb0 = np.empty(hh, dtype=np.int64)
-    xb1 = np.empty(hh, dtype=np.int64)
     _capsule_rows(hh, ww, ox, oy, ax, ay, bs0 - ga_s, bs1 + ga_s, bt + ga_t, xa0, xa1)
     _capsule_rows(hh, ww, ox, oy, ax, ay, bs0 - gs_s, bs1 + gs_s, bt + gs_t, xs0, xs1)
     _capsule_rows(hh, ww, ox, oy, ax, ay, bs0, bs1, bt, xb0, xb1)
-    # Attenuation on the grown capsule: attenuation_from_coarse's arithmetic, pixel for pixel.
-    ws = coarse.shape[1]
-    ix0, ix1, wxs = view_kernels.bilinear_columns(ww, x0, fx, ws)
-    # (Not zeroed: every pixel read of the attenuation, of its row pass and of the background below lies in the
-    # capsule or the support where they are written; the smoothed attenuation is read beyond, and zeroed.)
-    a = np.empty((hh, ww), dtype=np.float32)
-    row = np.empty(ws, dtype=np.float32)
-    one = np.float32(1.0)
-    clo, chi = ix0[0], ix1[ww - 1] + 1
+    # The log table's lines over the gray levels of the grown capsule (as _warm_log_table over the ROI, which
+    # search_pair leaves to this pass where it asks for it: fewer pixels, the same lines).
+    lo_v, hi_v = 65535, 0
     for y in range(hh):
-        if xa1[y] <= xa0[y]:
-            continue
-        view_kernels.coarse_row_at(coarse, y + y0, fy, clo, chi, row)
-        src, arow = image[y + y0], a[y]
+        src = image[y + y0]
         for x in range(xa0[y], xa1[y]):
-            bg = row[ix0[x]] * (one - wxs[x]) + row[ix1[x]] * wxs[x]
-            arow[x] = bg - log_table[src[x + x0]]
-    # The 5x5 Gaussian on the smoothed capsule (rows, then columns, as gaussian5 sums them).
+            v = int(src[x + x0])
+            lo_v = min(lo_v, v)
+            hi_v = max(hi_v, v)
+    total = np.float32(0.0)
+    for i in range(lo_v - lo_v % _TABLE_LINE, min(hi_v + _TABLE_LINE, log_table.size), _TABLE_LINE):
+        total += log_table[i]
+    out[OUT_TABLE_WARMED] += float(total)
+    # bilinear_columns' numbers, into the workspace.
+    for x in range(ww):
+        s = min(max((x + x0 + 0.5) / fx - 0.5, 0.0), ws - 1.0)
+        i = min(int(s), max(ws - 2, 0))
+        ix0[x] = i
+        ix1[x] = min(i + 1, ws - 1)
+        wxs[x] = np.float32(s - i)
+    # One sweep down the window: row y's attenuation on the grown capsule (attenuation_from_coarse's arithmetic,
+    # pixel for pixel) and its row pass of the 5x5 Gaussian, then the column pass of row y - 2 on the smoothed
+    # capsule (as gaussian5 sums them). (The attenuation and the row pass are not zeroed: every pixel read of
+    # them, and of the background below, lies in the capsule or the support where they are written; the
+    # smoothed attenuation is read beyond, and zeroed.)
     g0, g1, g2, g3, g4 = g[0], g[1], g[2], g[3], g[4]
-    tmp = np.empty((hh, ww), dtype=np.float32)
+    one = np.float32(1.0)
+    zero = np.float32(0.0)
+    clo, chi = ix0[0], ix1[ww - 1] + 1
+    # (The inner loops run on slices with unsigned indices: no negative-index wrap-around per access, which
+    # kept the compiler from vectorising them; ~4x faster row and column passes.)
+    u1, u2, u3, u4 = np.uint64(1), np.uint64(2), np.uint64(3), np.uint64(4)
     for y in range(hh):
-        arow, trow = a[y], tmp[y]
-        for x in range(xa0[y] + 2, xa1[y] - 2):
-            trow[x] = g0 * arow[x - 2] + g1 * arow[x - 1] + g2 * arow[x] + g3 * arow[x + 1] + g4 * arow[x + 2]
-    smooth = np.zeros((hh, ww), dtype=np.float32)
-    for y in range(2, hh - 2):
-        r0, r1, r2, r3, r4, srow = tmp[y - 2], tmp[y - 1], tmp[y], tmp[y + 1], tmp[y + 2], smooth[y]
-        for x in range(xs0[y], xs1[y]):
-            srow[x] = g0 * r0[x] + g1 * r1[x] + g2 * r2[x] + g3 * r3[x] + g4 * r4[x]
+        lo, hi = xa0[y], xa1[y]
+        if hi > lo:
+            view_kernels.coarse_row_at(coarse, y + y0, fy, clo, chi, row)
+            src, arow = image[y + y0, lo + x0:hi + x0], a[y, lo:hi]
+            c0s, c1s, wrow = ucols[0, lo:hi], ucols[1, lo:hi], wxs[lo:hi]
+            for i in range(np.uint64(hi - lo)):
+                bg = row[c0s[i]] * (one - wrow[i]) + row[c1s[i]] * wrow[i]
+                arow[i] = bg - log_table[src[i]]
+            if hi - lo > 4:
+                trow = tmp[y, lo + 2:hi - 2]
+                for i in range(np.uint64(hi - lo - 4)):
+                    trow[i] = (g0 * arow[i] + g1 * arow[i + u1] + g2 * arow[i + u2] + g3 * arow[i + u3]
+                               + g4 * arow[i + u4])
+        r = y - 2  # the row whose column pass the rows up to y allow
+        if r < 0:
+            continue
+        srow = smooth[r]
+        for x in range(ww):
+            srow[x] = zero
+        if r < 2 or r >= hh - 2:
+            continue
+        lo, hi = xs0[r], xs1[r]
+        if hi <= lo:
+            continue
+        r0, r1, r2, r3, r4 = tmp[r - 2, lo:hi], tmp[r - 1, lo:hi], tmp[r, lo:hi], tmp[r + 1, lo:hi], tmp[r + 2, lo:hi]
+        srow = smooth[r, lo:hi]
+        for i in range(np.uint64(hi - lo)):
+            srow[i] = g0 * r0[i] + g1 * r1[i] + g2 * r2[i] + g3 * r3[i] + g4 * r4[i]
+    for r in range(max(hh - 2, 0), hh):
+        srow = smooth[r]
+        for x in range(ww):
+            srow[x] = zero
     # The body: above the attenuation beside it by the refinement's level, inside the capsule.
     peak = -np.inf
     for y in range(hh):
@@ -416,20 +495,19 @@ def lean_view(image, coarse, fy, fx, log_table, g, prev, po, qu, qv, sigma, p, n
             peak = max(peak, float(srow[x]))
     height = peak - baseline
     if not (abs(height - last_height) <= LEAN_CHANGE * last_height):
-        return False, empty_w, empty_m, 0, 0
+        return False, 0, 0, 0, 0
     level = max(support_sigma * sigma * smooth_gain, support_fraction * height)
     lvl32 = np.float32(level)
     nside = math.floor(bs1 - bs0) + 1
     side = view_kernels._side_baseline(smooth, 0, 0, hh, ww, ox, oy, ax, ay, bs0, nside, t_max + pad + 1.0)
-    mask = np.zeros((hh, ww), dtype=np.uint8)
-    cap_px = hh * ww
-    mys = np.empty(cap_px, dtype=np.int64)
-    mxs = np.empty(cap_px, dtype=np.int64)
     count = 0
     in_lo, in_hi, in_t = np.inf, -np.inf, 0.0
+    by0, by1, bx0, bx1 = hh, -1, ww, -1  # the body's bounding box
     for y in range(hh):
         gy = y - oy
         srow, mrow = smooth[y], mask[y]
+        for x in range(ww):
+            mrow[x] = 0
         for x in range(xb0[y], xb1[y]):
             gx = x - ox
             s_ = gx * ax + gy * ay
@@ -438,82 +516,119 @@ def lean_view(image, coarse, fy, fx, log_table, g, prev, po, qu, qv, sigma, p, n
                 mrow[x] = 1
                 mys[count], mxs[count] = y, x
                 count += 1
+                by0, by1, bx0, bx1 = min(by0, y), max(by1, y), min(bx0, x), max(bx1, x)
                 t_ = abs(-gx * ay + gy * ax)
                 in_lo, in_hi, in_t = min(in_lo, s_), max(in_hi, s_), max(in_t, t_)
     if count == 0 or abs(count - last_count) > LEAN_CHANGE * last_count:
-        return False, empty_w, empty_m, 0, 0
+        return False, 0, 0, 0, 0
     if (in_lo < bs0 + 1.0 or in_hi > bs1 - 1.0 or in_t > bt - 1.0
             or abs((in_hi - in_lo) - (s_hi - s_lo)) > LEAN_LENGTH_PX or abs(in_t - t_max) > LEAN_WIDTH_PX):
-        return False, empty_w, empty_m, 0, 0
+        return False, 0, 0, 0, 0
     # The support (a rectangle around the body along its axis) and the background interpolated under it.
     lo_s_, hi_s_, hi_t = in_lo - pad, in_hi + pad, in_t + pad
-    gxs = np.empty(4)
-    gys = np.empty(4)
+    gx_lo, gx_hi, gy_lo, gy_hi = np.inf, -np.inf, np.inf, -np.inf
     for k in range(4):
         s_ = lo_s_ if k < 2 else hi_s_
         t_ = -hi_t if k % 2 == 0 else hi_t
-        gxs[k] = s_ * ax - t_ * ay + ox
-        gys[k] = s_ * ay + t_ * ax + oy
-    sy0, sy1 = max(math.floor(gys.min()) - 1, 0), min(math.ceil(gys.max()) + 2, hh)
-    sx0, sx1 = max(math.floor(gxs.min()) - 1, 0), min(math.ceil(gxs.max()) + 2, ww)
-    support = np.zeros((max(sy1 - sy0, 0), max(sx1 - sx0, 0)), dtype=np.uint8)
+        gxk, gyk = s_ * ax - t_ * ay + ox, s_ * ay + t_ * ax + oy
+        gx_lo, gx_hi, gy_lo, gy_hi = min(gx_lo, gxk), max(gx_hi, gxk), min(gy_lo, gyk), max(gy_hi, gyk)
+    sy0, sy1 = max(math.floor(gy_lo) - 1, 0), min(math.ceil(gy_hi) + 2, hh)
+    sx0, sx1 = max(math.floor(gx_lo) - 1, 0), min(math.ceil(gx_hi) + 2, ww)
+    sh, sw = max(sy1 - sy0, 0), max(sx1 - sx0, 0)
+    support = work[at_support:at_support + sh * sw].reshape((sh, sw))
     for y in range(sy0, sy1):
         gy = y - oy
+        srow_ = support[y - sy0]
         for x in range(sx0, sx1):
             gx = x - ox
             s_, t_ = gx * ax + gy * ay, -gx * ay + gy * ax
-            if s_ >= lo_s_ and s_ <= hi_s_ and abs(t_) <= hi_t:
-                support[y - sy0, x - sx0] = 1
-    background = np.empty((hh, ww), dtype=np.float32)
+            srow_[x - sx0] = 1 if (s_ >= lo_s_ and s_ <= hi_s_ and abs(t_) <= hi_t) else 0
+    background = tmp  # (the row pass is done with)
     view_kernels._fill_values(smooth, 0, 0, hh, ww, support, sy0, sy1, sx0, sx1, fill_rows, fill_cols,
                               abs(ax) < abs(ay), background)
     # The weights near the body, their window, and how much the background under the body varies.
-    near, ny0, nx0 = view_kernels._dilated_box(mys, mxs, count, near_hw, hh, ww)
-    nh, nw = near.shape
+    # (view_kernels._dilated_box's dilation of the body, from its mask's runs on its bounding box grown by the
+    # element's radius, the marks' prefix sums taken in the same pass as the support's test.)
+    rad = (near_hw.size - 1) // 2
+    ny0, nx0 = max(by0 - rad, 0), max(bx0 - rad, 0)
+    nh, nw = min(by1 + rad + 1, hh) - ny0, min(bx1 + rad + 1, ww) - nx0
+    marks = work[at_marks:at_marks + 4 * nh * (nw + 1)].view(np.int32).reshape((nh, nw + 1))
+    near = work[at_near:at_near + nh * nw].reshape((nh, nw))
+    for y in range(nh):
+        mrow = marks[y]
+        for x in range(nw + 1):
+            mrow[x] = 0
+    for y in range(nh):
+        mrow = mask[ny0 + y]
+        x = nx0
+        while x < nx0 + nw:
+            while x < nx0 + nw and mrow[x] == 0:
+                x += 1
+            start = x
+            while x < nx0 + nw and mrow[x] != 0:
+                x += 1
+            if start < nx0 + nw:
+                view_kernels._mark_run(marks, y, start - nx0, x - nx0, near_hw)
     ky0, ky1, kx0, kx1 = hh, -1, ww, -1
     bmin, bmax = np.inf, -np.inf
     for y in range(nh):
+        acc = 0
+        mrow = marks[y]
         for x in range(nw):
+            acc += mrow[x]
             yy, xx = ny0 + y, nx0 + x
-            inside = (near[y, x] and yy >= sy0 and yy < sy1 and xx >= sx0 and xx < sx1
-                      and support[yy - sy0, xx - sx0])
+            inside = (acc > 0 and yy >= sy0 and yy < sy1 and xx >= sx0 and xx < sx1
+                      and support[yy - sy0, xx - sx0] != 0)
             near[y, x] = 1 if inside else 0
             if inside:
                 ky0, ky1, kx0, kx1 = min(ky0, yy), max(ky1, yy), min(kx0, xx), max(kx1, xx)
                 b = float(background[yy, xx])
                 bmin, bmax = min(bmin, b), max(bmax, b)
     if ky1 < 0:
-        return False, empty_w, empty_m, 0, 0
+        return False, 0, 0, 0, 0
     clutter = (bmax - bmin) / height
     if not clutter <= LEAN_MAX_CLUTTER:
-        return False, empty_w, empty_m, 0, 0
+        return False, 0, 0, 0, 0
     for i in range(count):
         ky0, ky1, kx0, kx1 = min(ky0, mys[i]), max(ky1, mys[i]), min(kx0, mxs[i]), max(kx1, mxs[i])
     ky1 += 1
     kx1 += 1
-    weights = np.zeros((ky1 - ky0, kx1 - kx0), dtype=np.float32)
+    wh, wwid = ky1 - ky0, kx1 - kx0
+    weights = weights_flat[:wh * wwid].reshape((wh, wwid))
+    body = body_flat[:wh * wwid].reshape((wh, wwid))
+    for y in range(wh):
+        wrow, brow, mrow = weights[y], body[y], mask[ky0 + y]
+        for x in range(wwid):
+            wrow[x] = zero
+            brow[x] = mrow[kx0 + x]
     for y in range(nh):
         for x in range(nw):
             if near[y, x]:
                 yy, xx = ny0 + y, nx0 + x
                 weights[yy - ky0, xx - kx0] = a[yy, xx] - background[yy, xx]
-    body = mask[ky0:ky1, kx0:kx1].copy()
-    m00, m10, m01, mu20, mu02, mu11 = view_kernels.moments(weights)
+    cap = cap_fraction * height if cap_fraction < 1.0 else np.inf
+    # The weights' moments once, for the refinement's numbers and the features (and the capped ones' with them:
+    # moments_and_capped's first six are moments').
+    if math.isfinite(cap):
+        sums = view_kernels.moments_and_capped(weights, cap)
+    else:
+        m00, m10, m01, mu20, mu02, mu11 = view_kernels.moments(weights)
+        sums = (m00, m10, m01, mu20, mu02, mu11, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    m00, m10, m01, mu20, mu02, mu11 = sums[0], sums[1], sums[2], sums[3], sums[4], sums[5]
     if not m00 > 0.0:
-        return False, empty_w, empty_m, 0, 0
+        return False, 0, 0, 0, 0
     _, minor, _, _ = view_kernels._principal(mu20, mu02, mu11, 1)
     sc = (float(ky0), float(ky1), float(kx0), float(kx1), height, baseline, m00, m10 / m00, m01 / m00, 0.0, minor,
           clutter, float(count))
     for i in range(roi_kernels.REFINED_SIZE):
         out[o + Rf + i] = sc[i]
     out[o + roi_kernels.SIGMA] = sigma
-    cap = cap_fraction * height if cap_fraction < 1.0 else np.inf
     if not _features_tail(out[o:o + SEARCH_SIZE], weights, cap, sigma, levels, head_ramp_ratio, head_min_ramp_px,
-                          x0 + kx0, y0 + ky0):
-        return False, empty_w, empty_m, 0, 0
+                          x0 + kx0, y0 + ky0, sums):
+        return False, 0, 0, 0, 0
     if not math.hypot(out[o + roi_kernels.CENTROID] - qu, out[o + roi_kernels.CENTROID + 1] - qv) <= gate_px:
-        return False, empty_w, empty_m, 0, 0
-    return True, weights, body, x0, y0
+        return False, 0, 0, 0, 0
+    return True, wh, wwid, x0, y0
 
 
 # ------------------------------------------------------------------------------------- the plain frame
@@ -695,7 +810,8 @@ def _place_body(out, inp, G):  # pragma: no cover - compiled
 
 @kernel
 def search_pair(image_p, image_q, coarse_p, coarse_q, log_table, g, params, ring_outer, ring_inner, near_hw,
-                levels, search_settings, G, inp, prev, weights_buf, masks_buf, out):  # pragma: no cover - compiled
+                levels, search_settings, G, inp, prev, weights_buf, masks_buf, work,
+                out):  # pragma: no cover - compiled
     """Both views' steady-state search and the reconstruction's front (see the module docstring).
 
     ``search_settings``: ``[detect_sigma, smooth_gain, floor, min_pixels, max_tries, max_candidates,
@@ -703,7 +819,8 @@ def search_pair(image_p, image_q, coarse_p, coarse_q, log_table, g, params, ring
     search_view; ``params``, ``ring_*``, ``near_hw``, ``levels`` as search_view takes them; ``G`` the
     packed calibration; ``prev`` the previous pair's output (read where ``V_LEAN`` asks for the lean pass).
     ``weights_buf`` (float32) and ``masks_buf`` (uint8), each ``(2, WINDOW_CAPACITY)``, get each found
-    view's weights and mask (their shape at ``OUT_WINDOW_SHAPES``). Returns the status: the chosen blobs'
+    view's weights and mask (their shape at ``OUT_WINDOW_SHAPES``); ``work`` (uint8, :data:`LEAN_WORK_BYTES`) is
+    the lean pass's workspace, the same buffer every frame (:func:`lean_view`). Returns the status: the chosen blobs'
     arrays are written, not returned, because each array a kernel returns is a new Python object (about
     8 us for four after a frame's copy, issue 8).
     """
@@ -736,7 +853,6 @@ def search_pair(image_p, image_q, coarse_p, coarse_q, log_table, g, params, ring
             return PAIR_PER_VIEW
         image = image_p if view == 0 else image_q
         coarse = coarse_p if view == 0 else coarse_q
-        warmed += _warm_log_table(image, y0, y1, x0, x1, log_table)
         out[OUT_TABLE_WARMED] = warmed
         view_out = out[o:o + SEARCH_SIZE]
         lean = False
@@ -746,11 +862,16 @@ def search_pair(image_p, image_q, coarse_p, coarse_q, log_table, g, params, ring
                                    inp[IN_LAST_CENTRE + 2])
             qu = prev[o + roi_kernels.CENTROID] + (pu - lu)
             qv = prev[o + roi_kernels.CENTROID + 1] + (pv - lv)
-            lean, weights, mask, lx0, ly0 = lean_view(
+            lean, lh, lw, lx0, ly0 = lean_view(
                 image, coarse, inp[v + V_FY], inp[v + V_FX], log_table, g, prev, o, qu, qv, inp[v + V_KNOWN_SIGMA],
-                params, near_hw, levels, axis_saturation, head_ramp_ratio, head_min_ramp_px, gate_px, out, o)
+                params, near_hw, levels, axis_saturation, head_ramp_ratio, head_min_ramp_px, gate_px, out, o, work,
+                weights_buf[view], masks_buf[view])
+            warmed = out[OUT_TABLE_WARMED]  # (the lean pass warms the log table over its capsule)
             if lean:
                 x0, y0 = lx0, ly0
+        if not lean:
+            warmed += _warm_log_table(image, y0, y1, x0, x1, log_table)
+            out[OUT_TABLE_WARMED] = warmed
         found, via = lean, FOUND_BY_LEAN if lean else FOUND_BY_ROI
         if not found and inp[IN_TIGHT] != 0.0 and inp[v + V_HAS_OUTLINE] != 0.0 and inp[v + V_KNOWN_SIGMA] > 0.0:
             # The tight ROI first, where the last frame's prediction error allows one (NaN: it does not) and the
@@ -780,11 +901,16 @@ def search_pair(image_p, image_q, coarse_p, coarse_q, log_table, g, params, ring
         out[o + R_FOUND_BY] = via
         c = roi_kernels.CENTROID
         out[o + R_RESIDUAL] = math.hypot(view_out[c] - pu, view_out[c + 1] - pv)
+        if lean:  # (its weights and mask are in the buffers already)
+            mask = masks_buf[view, :lh * lw].reshape((lh, lw))
         _extent(out, o, mask, x0 + int(view_out[roi_kernels.REFINED + 2]), y0 + int(view_out[roi_kernels.REFINED]))
         r = roi_kernels.REFINED
         clutter_sigma = clutter_axis_sigma(view_out[r + 11], int(view_out[r + 12]), view_out[r + 4], view_out[r + 6],
                                            view_out[roi_kernels.EIGENVALUES], view_out[roi_kernels.EIGENVALUES + 1])
         out[o + R_AXIS_SIGMA] = math.hypot(view_out[roi_kernels.AXIS_SIGMA], clutter_sigma)
+        if lean:
+            out[OUT_WINDOW_SHAPES + 2 * view], out[OUT_WINDOW_SHAPES + 2 * view + 1] = lh, lw
+            continue
         wh, ww = weights.shape
         if wh * ww > WINDOW_CAPACITY:
             return PAIR_PER_VIEW
@@ -845,7 +971,8 @@ def warm_up() -> None:
             inp[IN_VIEW + V_LEAN] = inp[IN_VIEW + IN_VIEW_SIZE + V_LEAN] = lean
             search_pair(frame, frame, coarse, coarse, table, view_kernels.GAUSSIAN_5, params, disk, disk, disk,
                         levels, settings, G, inp, np.zeros(OUT_SIZE), np.empty((2, WINDOW_CAPACITY), dtype=np.float32),
-                        np.empty((2, WINDOW_CAPACITY), dtype=np.uint8), np.empty(OUT_SIZE))
+                        np.empty((2, WINDOW_CAPACITY), dtype=np.uint8), np.empty(LEAN_WORK_BYTES, dtype=np.uint8),
+                        np.empty(OUT_SIZE))
 
 
 register_warm_up(__name__)

@@ -110,6 +110,8 @@ class SteadyPair:
         #: Where the call writes each view's chosen weights and mask (see objects).
         self._weights_buf = np.zeros((2, sk.WINDOW_CAPACITY), dtype=np.float32)
         self._masks_buf = np.zeros((2, sk.WINDOW_CAPACITY), dtype=np.uint8)
+        #: The lean pass's workspace (steady_kernels.lean_view), reused every frame.
+        self._work = np.zeros(sk.LEAN_WORK_BYTES, dtype=np.uint8)
 
     def lean_views(self) -> tuple[bool, bool]:
         """Whether the last call found view p and view q by the lean pass."""
@@ -182,7 +184,7 @@ class SteadyPair:
         status = sk.search_pair(image_p, image_q, bg_p.coarse, bg_q.coarse, *self._fixed,
                                 lean_from if lean_from is not None else
                                 last_out if last_out is not None else self._no_previous,
-                                self._weights_buf, self._masks_buf, out)
+                                self._weights_buf, self._masks_buf, self._work, out)
         if status != sk.PAIR_FOUND:
             return False
         self.out = out

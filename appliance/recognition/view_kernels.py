@@ -1527,14 +1527,21 @@ def weighted_view_features(weights, cap, pixel_sigma, levels):  # pragma: no cov
     (:func:`missing_cone_shift`), and the distances are from it; the moments, the axis and its
     noise are the weights' own; ``axis_sigma`` is the pixel noise's (:func:`axis_sigma_of`) and the
     mixed moment's sampling error (:data:`MOMENT_BIAS_PX2`) together."""
+    if math.isfinite(cap):  # the capped weights' moments in the same pass (their axis, if the weights have any)
+        return features_of_moments(weights, cap, pixel_sigma, levels, moments_and_capped(weights, cap))
+    m00, m10, m01, mu20, mu02, mu11 = moments(weights)
+    return features_of_moments(weights, cap, pixel_sigma, levels,
+                               (m00, m10, m01, mu20, mu02, mu11, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
+
+
+@kernel
+def features_of_moments(weights, cap, pixel_sigma, levels, sums):  # pragma: no cover - compiled
+    """:func:`weighted_view_features` given the weights' :func:`moments_and_capped` (``sums``; where ``cap`` is
+    infinite, :func:`moments` and six zeros), for a caller that has them already."""
     n = levels.size
     out = np.zeros(7 + 2 * n)
     capped = math.isfinite(cap)
-    if capped:  # the capped weights' moments in the same pass (their axis, if the weights have any)
-        m00, m10, m01, mu20, mu02, mu11, t00, _, _, t20, t02, t11 = moments_and_capped(weights, cap)
-    else:
-        m00, m10, m01, mu20, mu02, mu11 = moments(weights)
-        t00 = t20 = t02 = t11 = 0.0
+    m00, m10, m01, mu20, mu02, mu11, t00, _, _, t20, t02, t11 = sums
     if not m00 > 0:
         return 0, out
     c0, c1 = m10 / m00, m01 / m00

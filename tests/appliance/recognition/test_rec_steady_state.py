@@ -401,3 +401,31 @@ def test_output_arrays_are_reused_only_where_nothing_holds_them(views: dict[str,
         assert posture.ok and tracker.last_search == "roi"
         seen.add(id(posture.centroid_mm))
     assert len(seen) <= 3
+
+
+def test_lean_pass_reads_nothing_of_its_workspace_it_did_not_write(views: dict[str, object], calibration: Calibration,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    # The lean pass's arrays are parts of a workspace the pair reuses every frame, some of them not cleared
+    # (steady_kernels.lean_view). With the workspace and the weights' buffers filled with NaN bytes before every
+    # call, every posture must still be the one of a tracker whose buffers hold what the last call left.
+    centres = [np.array([-8.0, 6.0, -3.0]) + n / 30.0 * np.array([9.0, 3.0, -2.0]) for n in range(6)]
+    dark = ImagingSettings().dark_level
+    search = SteadyPair.search
+    dirtied, pairs = [], []
+
+    def dirty_search(self: SteadyPair, *args: object, **kwargs: object) -> bool:
+        if not any(p is self for p in pairs):
+            pairs.append(self)
+        if self is pairs[-1] and len(pairs) == 2:  # (the second tracker's pair only)
+            for buffer in (self._work, self._weights_buf, self._masks_buf):
+                buffer.view(np.uint8)[:] = 0xFF
+            dirtied.append(True)
+        return search(self, *args, **kwargs)
+
+    monkeypatch.setattr(SteadyPair, "search", dirty_search)
+    frames = _two_trackers(views, calibration, 1, centres, (-0.7, 0.2, 0.68), RecognitionSettings(dark_level=dark),
+                           RecognitionSettings(dark_level=dark),
+                           lambda t: t._pair.lean_views() if t.last_search == "roi" else (False, False))
+    assert dirtied and all(used == (True, True) for _, _, used in frames[2:])
+    for clean, dirty, _ in frames:
+        _same(clean, dirty, skip=("timings_us",))
