@@ -305,6 +305,19 @@ def _combine(e: np.ndarray) -> tuple[float, float]:
 
 
 @kernel
+def _fit_dof(e: np.ndarray) -> float:
+    """The degrees of freedom of :func:`_combine`'s chi-square: its core estimates and gated apexes, less one."""
+    n_core, n_apex = int(e[_E_CORE_N]), int(e[_E_APEX_N])
+    b, total = _core_mean(e, n_core, _E_CORE_S)
+    n = n_core
+    for j in range(n_apex):
+        s = e[_E_APEX_S + j]
+        if abs(e[_E_APEX_B + j] - b) <= APEX_GATE_SIGMAS * math.sqrt(s * s + 1.0 / total):
+            n += 1
+    return float(n - 1)
+
+
+@kernel
 def _disagreement(e: np.ndarray) -> tuple[float, int, int, float]:
     """How far the core estimates disagree by a clean frame's noise: the chi-square of their inverse-variance
     mean with the clean sigmas, its degrees of freedom, which estimate is most at odds with it (``OUT_WHAT``'s
@@ -510,7 +523,10 @@ def place(G: np.ndarray, inp: np.ndarray, body: np.ndarray, out: np.ndarray) -> 
             # or, where the head claim was withheld, by the cone-model tip put at the wrong end as well. Where the
             # moment centroid is over another structure, its place is the ends' (both orders put the tails
             # about alike): seed 7182818 robot 3 pose 19, 0.71 -> 0.24 mm.
-            w1 = 1.0 / (1.0 + math.exp(min(0.5 * (chi1 - chi0), 700.0)))
+            # (Where even the better order fits badly, both are off and their chi-squares' difference is no
+            # likelihood ratio: it is scaled down by the better one's chi-square per degree of freedom.)
+            scale = max(chi2 / max(_fit_dof(rows[chosen]), 1.0), 1.0)
+            w1 = 1.0 / (1.0 + math.exp(min(0.5 * (chi1 - chi0) / scale, 700.0)))
             w0 = 1.0 - w1
             along = w0 * b0 + w1 * b1
             plus_end = w0 * (b0 + (length - cft)) + w1 * (b1 + cft)     # the +u end: order 0's head, 1's tail
