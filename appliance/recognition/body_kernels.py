@@ -75,6 +75,9 @@ LENGTH_SIGMAS = 4.0
 #: The ends' order is taken from the body's offset where one order fits the ends better by this much
 #: (chi-square), with the head not identified.
 ORDER_CHI2 = 25.0
+#: With the order undecided, the body is placed where both orders put it where they agree within this many of
+#: a clean moment centroid's sigmas (``_E_CORE_C``), and at the moment centroid otherwise.
+ORDER_AGREE_SIGMAS = 2.0
 #: Noise (px, across the image axis) of where a view's 2D axis line passes its centroid: the moment
 #: centroid's (:data:`CENTROID_SIGMA_PX`), which the line goes through.
 AXIS_LINE_SIGMA_PX = CENTROID_SIGMA_PX
@@ -305,19 +308,6 @@ def _combine(e: np.ndarray) -> tuple[float, float]:
 
 
 @kernel
-def _fit_dof(e: np.ndarray) -> float:
-    """The degrees of freedom of :func:`_combine`'s chi-square: its core estimates and gated apexes, less one."""
-    n_core, n_apex = int(e[_E_CORE_N]), int(e[_E_APEX_N])
-    b, total = _core_mean(e, n_core, _E_CORE_S)
-    n = n_core
-    for j in range(n_apex):
-        s = e[_E_APEX_S + j]
-        if abs(e[_E_APEX_B + j] - b) <= APEX_GATE_SIGMAS * math.sqrt(s * s + 1.0 / total):
-            n += 1
-    return float(n - 1)
-
-
-@kernel
 def _disagreement(e: np.ndarray) -> tuple[float, int, int, float]:
     """How far the core estimates disagree by a clean frame's noise: the chi-square of their inverse-variance
     mean with the clean sigmas, its degrees of freedom, which estimate is most at odds with it (``OUT_WHAT``'s
@@ -514,27 +504,23 @@ def place(G: np.ndarray, inp: np.ndarray, body: np.ndarray, out: np.ndarray) -> 
                 out[OUT_TIPS + first + i] = tail + sign * length * u[i]
                 out[OUT_TIPS + 3 - first + i] = tail
         elif ordered:
-            # Undecided: each point where it errs least on average over the two orders, each weighed by its
-            # likelihood (exp(-chi-square / 2), equal priors): the body's place along the axis and each tip as
-            # the orders place them, mixed. Where the orders fit alike, each tip is the body's half length
-            # either side of where both put the centroid, within the body's offset asymmetry
-            # (L / 2 - centroid_from_tail: robot 7 0.9 mm, robot 3 2.4 mm) of the truth whichever end is the
-            # head; the measured ends err by 0 and ~0.7 of the cone (an apex measured as a flat end: 2 and 5 mm),
-            # or, where the head claim was withheld, by the cone-model tip put at the wrong end as well. Where the
-            # moment centroid is over another structure, its place is the ends' (both orders put the tails
-            # about alike): seed 7182818 robot 3 pose 19, 0.71 -> 0.24 mm.
-            # (Where even the better order fits badly, both are off and their chi-squares' difference is no
-            # likelihood ratio: it is scaled down by the better one's chi-square per degree of freedom.)
-            scale = max(chi2 / max(_fit_dof(rows[chosen]), 1.0), 1.0)
-            w1 = 1.0 / (1.0 + math.exp(min(0.5 * (chi1 - chi0) / scale, 700.0)))
-            w0 = 1.0 - w1
-            along = w0 * b0 + w1 * b1
-            plus_end = w0 * (b0 + (length - cft)) + w1 * (b1 + cft)     # the +u end: order 0's head, 1's tail
-            minus_end = w0 * (b0 - cft) + w1 * (b1 - (length - cft))
+            # Undecided: each tip where it errs least whichever end is the head, the body's half length either
+            # side of its place along the axis: within the body's offset asymmetry (L / 2 - centroid_from_tail:
+            # robot 7 0.9 mm, robot 3 2.4 mm) of the truth. The measured ends err by 0 and ~0.7 of the cone (an
+            # apex measured as a flat end: 2 and 5 mm), or, where the head claim was withheld, by the cone-model
+            # tip put at the wrong end as well. The place is where both orders put the body where they agree
+            # to a clean moment centroid's noise (:data:`ORDER_AGREE_SIGMAS`: then it does not matter which end
+            # is the head; seed 7182818 robot 3 pose 19, the moment centroid over the vessel: 0.71 -> 0.22 mm),
+            # otherwise the moment centroid's. (Not the orders weighed by their likelihoods: where a withheld
+            # claim left the cone-model tip at one end, its order fits best whether right or not; standing seed
+            # 31337 robot 7 pose 6, a wrong claim withheld: 0.03 -> 0.24 mm.)
+            along = 0.0
+            if abs(b0 - b1) <= ORDER_AGREE_SIGMAS * rows[0, _E_CORE_C]:
+                along = 0.5 * (b0 + b1)
             for i in range(3):
                 out[OUT_CENTROID + i] = c[i] + along * u[i]
-                out[OUT_TIPS + i] = c[i] + plus_end * u[i]
-                out[OUT_TIPS + 3 + i] = c[i] + minus_end * u[i]
+                out[OUT_TIPS + i] = c[i] + (along + 0.5 * length) * u[i]
+                out[OUT_TIPS + 3 + i] = c[i] + (along - 0.5 * length) * u[i]
         else:
             out[OUT_CENTROID:OUT_PLACED] = math.nan
     e = rows[chosen]
