@@ -57,7 +57,10 @@ def head_by_body(calibration: Calibration, F: np.ndarray, settings: RecognitionS
     structure, or by one view alone, stands unless the fit decisively puts the head at the other end (one
     clean view's ramps can lie too: a vessel alongside the tail, its clutter 0.12, made a 12 px "ramp" there,
     study seed 4040404 robot 2 pose 26; dev seeds 1-20 and standing seeds 20261121, 777, 4242: no other frame
-    changed). Claims by both views, both clean, are left alone, and so is a body whose cylinder is shorter
+    changed). A claim the fit leans against by ``settings.head_body_doubt_chi2``, short of decisive, is withdrawn
+    (:func:`_claim_withdrawn`): the head is then reported unidentified, not flipped (seed 7757247 robot 7 pose 17,
+    a wrong claim by view p over the vessel, 16.5 against it: tips 9.9 and 6.1 -> 0.73 mm; dev seeds 1-12 cold:
+    no claim the fit leans against by more than 5.5). Claims by both views, both clean, are left alone, and so is a body whose cylinder is shorter
     than its diameter (robot 4: its tail is no step, :mod:`.body_kernels`). (A plain frame, :mod:`.steady_state`,
     never reaches this: one claimed by one clean view alone is not checked on the tracked path.)
     """
@@ -73,9 +76,11 @@ def head_by_body(calibration: Calibration, F: np.ndarray, settings: RecognitionS
     rows_plus, rows_minus, plus_index = axial_rows(calibration, rec.centroid, rec.direction, feats, clutter, body)
     at_plus, at_minus = chi2_of(rows_plus, s.head_body_cap), chi2_of(rows_minus, s.head_body_cap)
     best, other = (at_plus, at_minus) if at_plus <= at_minus else (at_minus, at_plus)
-    if not (other - best >= s.head_body_chi2 and best <= s.head_body_fit * (len(rows_plus) - 1)):
-        return rec
     head_at_plus = at_plus <= at_minus
+    if not (other - best >= s.head_body_chi2 and best <= s.head_body_fit * (len(rows_plus) - 1)):
+        if rec.head_identified and not head_at_plus and other - best >= s.head_body_doubt_chi2:
+            return _claim_withdrawn(calibration, F, s, rec, blobs, feats, previous, rejection, other, best)
+        return rec
     if rec.head_identified and head_at_plus:
         return rec   # the claim (the +direction end when identified) is the body's
     # Both views claim it (with_head: their tips re-estimated, the apex by the cone's model).
@@ -92,6 +97,28 @@ def head_by_body(calibration: Calibration, F: np.ndarray, settings: RecognitionS
     redone.reasons.append(f"the head is told by the body's shape: measured as the cone's apex, that end puts "
                           f"the body where the rest of it is (chi-square {best:.1f} against {other:.1f})")
     return redone
+
+
+def _claim_withdrawn(calibration: Calibration, F: np.ndarray, settings: RecognitionSettings, rec: Reconstruction,
+                     blobs: dict[str, Blob], feats: dict[str, Features2D], previous: np.ndarray | None,
+                     rejection: Rejection, claimed_chi2: float, other_chi2: float) -> Reconstruction:
+    """``rec`` with its head claim withdrawn, the body's fit leaning against it by ``settings.head_body_doubt_chi2``
+    but not decisively (:func:`head_by_body`): redone with neither view claiming the head (both ends measured as
+    flat, the order left to the body prior), or, where the redone frame fails the checks or loses its axis, the
+    claim only withheld (the claimed end keeps its cone-model tip, as :meth:`.PostureTracker._head_in_doubt`)."""
+    reason = (f"the head is not claimed: the body's shape puts it at the other end (chi-square {other_chi2:.1f} "
+              f"against {claimed_chi2:.1f} for the claim), not decisively")
+    unclaimed = {name: feat.with_head(None) for name, feat in feats.items()}
+    try:
+        redone = reconstruct(calibration, F, unclaimed["p"], unclaimed["q"], settings, previous)
+    except ValueError:
+        redone = None
+    if (redone is not None and redone.direction is not None and not redone.head_identified
+            and rejection(redone, blobs, feats, previous) is None):
+        redone.reasons.append(reason)
+        return redone
+    final = {name: replace(feat, head_index=None) for name, feat in rec.view_features.items()}
+    return replace(rec, head_identified=False, view_features=final, reasons=rec.reasons + [reason])
 
 
 def plane_normal(calibration: Calibration, feats: dict[str, Features2D]) -> np.ndarray:

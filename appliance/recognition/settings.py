@@ -191,6 +191,11 @@ class RecognitionSettings(StrictModel):
     #: leans to the wrong end in 2 (by 5.5 and 3.2), and decides 6 of the 8 heads the ramps left
     #: unidentified or wrong (by 23.2 to 37.4; the other two by 2.7 and 17.0 stay unidentified).
     head_body_chi2: float = Field(20.0, gt=0)
+    #: A claim the body's fit leans against by this much (chi-square), short of ``head_body_chi2``, is withdrawn:
+    #: the evidence conflicts, so the head is reported unidentified (both ends then measured as flat), not
+    #: flipped. Above the leans of the fit to the wrong end on the dev seeds (5.5 and 3.2, above); seed 7757247
+    #: robot 7 pose 17, a wrong claim by view p over the vessel, the fit 16.5 against it.
+    head_body_doubt_chi2: float = Field(9.0, gt=0)
     head_body_fit: float = Field(9.0, gt=0)
     head_body_cap: float = Field(4.0, gt=0)
     #: With the body known and the axis within ``min_plane_angle_deg`` of an epipolar plane (its direction in

@@ -173,15 +173,17 @@ def test_an_unidentified_head_is_ordered_by_the_body_offset(calibration: Calibra
     assert np.linalg.norm(placed.centroid_mm - c) < 0.035
 
 
-def test_a_symmetric_body_with_an_unidentified_head_keeps_its_measured_place(calibration: Calibration) -> None:
+def test_a_symmetric_body_with_an_unidentified_head_is_placed_where_both_orders_put_it(calibration: Calibration) -> None:
     rod = BodyModel(length_mm=12.0, centroid_from_tail_mm=6.0, cone_length_mm=0.0, diameter_mm=2.0)
     c, u, head, tail = _truth(rod, (1.0, 1.0, 1.0), (0.5, 0.5, 0.7))
     posture = _posture(calibration, c, u, head, tail, centroid_shift_mm=0.05, head_identified=False)
     placed = place_body(calibration, posture, rod, SETTINGS)
-    # Either order fits alike: nothing says which end is which, so the measured centroid stays (on the axis
-    # planes already), and the tips are half the body's length either side of it.
-    np.testing.assert_allclose(placed.centroid_mm, posture.centroid_mm, atol=1e-6)
-    np.testing.assert_allclose(placed.tips_mm, [posture.centroid_mm + 6.0 * u, posture.centroid_mm - 6.0 * u], atol=1e-6)
+    # Either order fits alike, and both put the body where its ends are, within a clean centroid's noise of each
+    # other: the moment centroid, slid 0.05 mm, is pulled most of the way back (it kept its measured place
+    # before: seed 7182818 robot 3 pose 19, over the vessel, 0.71 mm off where both orders put it 0.22 mm off),
+    # and the tips are half the body's length either side of it. The head stays unidentified.
+    assert np.linalg.norm(placed.centroid_mm - c) < 0.02
+    np.testing.assert_allclose(placed.tips_mm, [placed.centroid_mm + 6.0 * u, placed.centroid_mm - 6.0 * u], atol=1e-6)
     assert not placed.head_identified
 
 
