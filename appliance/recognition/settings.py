@@ -124,6 +124,9 @@ class RecognitionSettings(StrictModel):
     #: that view's 2D axis was within 0.03 deg; at 1.15 they are 0.4 deg off. Dev seeds 1-12 cold, 1-4 tracked
     #: and the standing seeds: benchmarks/axis_round13.md.
     min_view_elongation: float = Field(1.15, ge=1)
+    #: A frame whose axis is certain only with the plane of a view elongated less than this stays flagged as
+    #: it was at ``min_view_elongation`` 1.3 (reconstruction._flagged_end_on).
+    end_on_flag_elongation: float = Field(1.3, ge=1)
     #: A frame whose 3D axis is more uncertain than this (from the image noise) is flagged ambiguous: a
     #: third of the 5 deg an unflagged frame may be off. The 3D sigma is calibrated (robot 4, dev seeds 1-20:
     #: RMS error / sigma 0.9-1.1 in every sigma range up to 2.5 deg), so an unflagged frame is off by 5 deg
