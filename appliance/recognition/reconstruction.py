@@ -168,6 +168,29 @@ def _reconstruct_weighted(calibration: Calibration, feat_p: Features2D, feat_q: 
     return reconstruct_from_front(calibration, feat_p, feat_q, settings, previous, status, out)
 
 
+def _flagged_end_on(calibration: Calibration, feat_p: Features2D, feat_q: Features2D, s: RecognitionSettings,
+                    previous: np.ndarray | None, reasons: list[str]) -> bool:
+    """Whether a view seen nearly end-on (its image elongated by ``settings.min_view_elongation`` to
+    ``settings.end_on_flag_elongation``) carries the axis: without its plane (as below ``min_view_elongation``)
+    the axis would be uncertain beyond ``settings.max_axis_sigma_deg``. Such a view's 2D axis is mostly right
+    (robot 6: 0.03 deg) and its plane is taken, but the frame keeps the flag it had without it, with the reason
+    appended (on the dev seeds robot 4's frames it unflagged were 0.2-1.7 deg off: median 0.544 -> 0.568 on
+    seed 7)."""
+    band = [name for name, f in (("p", feat_p), ("q", feat_q))
+            if s.min_view_elongation * f.eigenvalues[1] <= f.eigenvalues[0] < s.end_on_flag_elongation * f.eigenvalues[1]]
+    if not band:
+        return False
+    strict = _reconstruct_weighted(calibration, feat_p, feat_q,
+                                   s.model_copy(update={"min_view_elongation": s.end_on_flag_elongation}), previous)
+    sigma = strict.axis_sigma_rad
+    if sigma is not None and math.degrees(sigma) <= s.max_axis_sigma_deg:
+        return False
+    without = f"{math.degrees(sigma):.1f} deg" if sigma is not None else "far"
+    reasons.append(f"the axis rests on view {' and '.join(band)}, which sees the robot nearly end-on (without its "
+                   f"axis plane it is uncertain by {without})")
+    return True
+
+
 def reconstruct_from_front(calibration: Calibration, feat_p: Features2D, feat_q: Features2D,
                            settings: RecognitionSettings, previous: np.ndarray | None, status: int,
                            out: np.ndarray) -> Reconstruction:
@@ -204,6 +227,8 @@ def reconstruct_from_front(calibration: Calibration, feat_p: Features2D, feat_q:
         where = (f" (the robot is seen nearly end-on, or over another structure, in view {' and '.join(views)})"
                  if views else "")
         reasons.append(f"the axis is uncertain by about {sigma_deg:.1f} deg{where}")
+    if not ambiguous:
+        ambiguous = _flagged_end_on(calibration, feat_p, feat_q, s, previous, reasons)
     d = out[kernels.OUT_DIRECTION:kernels.OUT_DIRECTION + 3].copy()
     centroid = out[kernels.OUT_CORRECTED:kernels.OUT_CORRECTED + 3].copy()
     plus_index = {"p": int(values[kernels.OUT_PLUS]), "q": int(values[kernels.OUT_PLUS + 1])}

@@ -117,8 +117,16 @@ class RecognitionSettings(StrictModel):
     #: (on top of the mixed moment's sampling error, view_kernels.MOMENT_BIAS_PX2 / (l1 - l2), which each
     #: view's sigma already carries).
     axis_floor_rad: float = Field(0.001, gt=0)
-    #: A view whose image is less elongated than this (l1 / l2) gives no axis plane (robot seen end-on).
-    min_view_elongation: float = Field(1.3, ge=1)
+    #: A view whose image is less elongated than this (l1 / l2) gives no axis plane (robot seen end-on); above
+    #: it the plane counts with the view's axis sigma (which grows as l1 - l2 shrinks). At 1.3 robot 6 frames
+    #: seen nearly end-on in one view took the direction within the other view's plane from the tips (seed
+    #: 5235360 pose 8, view p at 1.19: 6.6 deg off, tips 2.4 mm; seed 5266249 pose 23 at 1.29: 5.7 deg) where
+    #: that view's 2D axis was within 0.03 deg; at 1.15 they are 0.4 deg off. Dev seeds 1-12 cold, 1-4 tracked
+    #: and the standing seeds: benchmarks/axis_round13.md.
+    min_view_elongation: float = Field(1.15, ge=1)
+    #: A frame whose axis is certain only with the plane of a view elongated less than this stays flagged as
+    #: it was at ``min_view_elongation`` 1.3 (reconstruction._flagged_end_on).
+    end_on_flag_elongation: float = Field(1.3, ge=1)
     #: A frame whose 3D axis is more uncertain than this (from the image noise) is flagged ambiguous: a
     #: third of the 5 deg an unflagged frame may be off. The 3D sigma is calibrated (robot 4, dev seeds 1-20:
     #: RMS error / sigma 0.9-1.1 in every sigma range up to 2.5 deg), so an unflagged frame is off by 5 deg

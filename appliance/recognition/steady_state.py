@@ -92,6 +92,7 @@ class SteadyPair:
         self._tight = s.tight_roi
         #: The checks that stay in Python (plain_posture), as plain floats.
         self._max_axis_sigma_deg = float(s.max_axis_sigma_deg)
+        self._end_on_flag_elongation = float(s.end_on_flag_elongation)
         self._epipolar_band_px = float(s.epipolar_band_px)
         self._tips_band_px = float(s.tips_band_px)
         #: Output arrays with what a plain posture is made of each (see _new_output), reused where nothing
@@ -265,7 +266,10 @@ class SteadyPair:
                 or kernel_axis_q != math.hypot(axis_q, clutter_axis_sigma_rad(
                     clutter_q, int(count_q), peak_q, strength_q, l1_q, l2_q) if clutter_q > 0.0 else 0.0)
                 or math.degrees(sigma) > self._max_axis_sigma_deg or epipolar > self._epipolar_band_px
-                or (rms_b if rms_b < rms_a else rms_a) > self._tips_band_px):  # min(rms_a, rms_b)
+                or (rms_b if rms_b < rms_a else rms_a) > self._tips_band_px  # min(rms_a, rms_b)
+                # A view seen nearly end-on (elongation in the band below end_on_flag_elongation): whether its
+                # axis plane may carry the frame unflagged is reconstruction._flagged_end_on's to decide.
+                or l1_p < self._end_on_flag_elongation * l2_p or l1_q < self._end_on_flag_elongation * l2_q):
             return None
         # PostureTracker._remember's numbers of this posture: the same floats as its fields.
         self.plain_track = ((x, y, z), (d0, d1, d2), length,
