@@ -436,12 +436,7 @@ def lean_view(image, coarse, fy, fx, log_table, g, prev, po, qu, qv, sigma, p, n
         total += log_table[i]
     out[OUT_TABLE_WARMED] += float(total)
     # bilinear_columns' numbers, into the workspace.
-    for x in range(ww):
-        s = min(max((x + x0 + 0.5) / fx - 0.5, 0.0), ws - 1.0)
-        i = min(int(s), max(ws - 2, 0))
-        ix0[x] = i
-        ix1[x] = min(i + 1, ws - 1)
-        wxs[x] = np.float32(s - i)
+    view_kernels.bilinear_columns_into(ww, x0, fx, ws, ix0, ix1, wxs)
     # One sweep down the window: row y's attenuation on the grown capsule (attenuation_from_coarse's arithmetic,
     # pixel for pixel) and its row pass of the 5x5 Gaussian, then the column pass of row y - 2 on the smoothed
     # capsule (as gaussian5 sums them). (The attenuation and the row pass are not zeroed: every pixel read of

@@ -229,13 +229,19 @@ def bilinear_columns(w, x0, fx, ws):  # pragma: no cover - compiled
     ix0 = np.empty(w, dtype=np.int64)
     ix1 = np.empty(w, dtype=np.int64)
     wx = np.empty(w, dtype=np.float32)
+    bilinear_columns_into(w, x0, fx, ws, ix0, ix1, wx)
+    return ix0, ix1, wx
+
+
+@kernel
+def bilinear_columns_into(w, x0, fx, ws, ix0, ix1, wx):  # pragma: no cover - compiled
+    """:func:`bilinear_columns` into the caller's arrays (their first ``w`` elements)."""
     for x in range(w):
         s = min(max((x + x0 + 0.5) / fx - 0.5, 0.0), ws - 1.0)
         i = min(int(s), max(ws - 2, 0))
         ix0[x] = i
         ix1[x] = min(i + 1, ws - 1)
         wx[x] = np.float32(s - i)
-    return ix0, ix1, wx
 
 
 @kernel
