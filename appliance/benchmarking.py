@@ -48,7 +48,7 @@ from typing import Any, Protocol
 import cv2
 import numpy as np
 
-from appliance.compiled import warm_up_all
+from appliance.compiled import BYTECODE_WARM_CALLS, warm_up_all
 from appliance.control import (
     ActuationModel,
     CurrentAllocator,
@@ -77,9 +77,9 @@ TARGET_LOOP_P99_US = 1000.0
 
 #: Rendered frames held at once (bytes): the pairs of a chunk are rendered before its measured passes.
 RENDERED_BYTES_PER_CHUNK = 1 << 30
-#: Tracked frames and control steps run_bench rehearses before the first measured frame (more than the 8 calls
-#: after which CPython 3.11 quickens a function's bytecode).
-REHEARSAL_FRAMES = 12
+#: Tracked frames and control steps run_bench rehearses before the first measured frame (as the orchestrator's
+#: start-up does).
+REHEARSAL_FRAMES = BYTECODE_WARM_CALLS
 
 
 class FrameSource(Protocol):

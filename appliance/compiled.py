@@ -116,6 +116,12 @@ def cache_is_warm() -> bool:
         return False
 
 
+#: How often a start-up runs the per-frame Python path before the first frame that counts: more than the 8 calls
+#: after which CPython 3.11's adaptive interpreter specialises ("quickens") a function's bytecode, so that the
+#: session's first frames do not run it unspecialised (issue 8: pairs 2-5 were slower than the rest).
+BYTECODE_WARM_CALLS = 12
+
+
 def kernel(function: F) -> F:
     """Compile ``function`` in nopython mode, cached on disk, releasing the GIL (see the module docstring)."""
     return numba.njit(cache=True, nogil=True)(function)  # type: ignore[no-any-return]

@@ -53,9 +53,8 @@ __all__ = ["FrameReport", "ListenerError", "LoopListener", "LoopSettings", "Loop
 
 #: Recognition noise allowed on top of the robot's reach when gating a new posture (mm).
 JUMP_MARGIN_MM = 2.0
-#: Tracked frames (and control steps) :meth:`Orchestrator._rehearse` runs at start-up: more than the 8 calls
-#: after which CPython 3.11 quickens a function's bytecode.
-REHEARSAL_TRACKED_PASSES = 12
+#: Tracked frames (and control steps) :meth:`Orchestrator._rehearse` runs at start-up.
+REHEARSAL_TRACKED_PASSES = compiled.BYTECODE_WARM_CALLS
 
 
 @dataclass(frozen=True)
