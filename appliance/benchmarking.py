@@ -325,8 +325,7 @@ def run_bench(source: FrameSource, frames: int, amplifier_factory: Callable[[Any
         port = _TimedPort(open_serial(amplifier_url, timeout=0.05))
         amplifier = (amplifier_factory or Amplifier)(port)
         amplifier.enable()
-        if rehearse_driver := getattr(amplifier, "rehearse_command", None):
-            rehearse_driver()   # its command path up to the write, nothing sent (see above)
+        amplifier.rehearse_command()   # its command path up to the write, nothing sent (see above)
     commanded = np.zeros(chain[2].model.n)
     dt = 1.0 / source.fps
     perf = time.perf_counter
