@@ -22,9 +22,7 @@ default; it needs device times on a common clock and both exposures) or when con
 
 :class:`BiplaneStream` runs one reader thread per source and a pairer; ``next_pair(timeout_s)`` hands
 the newest (latest mode) or next (all mode) pair to the one thread that owns the frame loop. Errors in a
-reader (a lost link) are raised from ``next_pair``, never swallowed. In latest mode a reader whose frame
-completes a pair while the consumer waits for one hands the pair over before it reads on (see
-:data:`HANDOVER_S`).
+reader (a lost link) are raised from ``next_pair``, never swallowed.
 """
 from __future__ import annotations
 
@@ -43,16 +41,6 @@ log = logging.getLogger(__name__)
 
 Match = Literal["number", "time"]
 Mode = Literal["latest", "all"]
-
-#: How long (s, at most) a reader whose frame completed a pair for the waiting consumer holds back before
-#: it reads on (latest mode): until the consumer has taken the pair and come back for the next one, i.e.
-#: while the consumer's frame step runs. Notified, the consumer still needs the GIL, which the reader would
-#: otherwise keep until its next read blocks (the USB grabber driver's Python path into the next transfer,
-#: ~30 us measured, issue 8), and once the reader is runnable again during the step it takes the GIL from
-#: the loop whenever a compiled kernel lets go of it (on a loaded machine the OS may then preempt it while it
-#: holds the GIL, stalling the loop for a time slice). Held, the reader's ~30 us come after the step, while
-#: the consumer waits; a device buffers several frames, so a few ms cost the reader nothing.
-HANDOVER_S = 0.005
 
 
 @dataclass(frozen=True)
@@ -256,9 +244,6 @@ class BiplaneStream:
         self._threads: list[threading.Thread] = []
         self._error: BaseException | None = None
         self._ended: set[str] = set()
-        self._consumers = 0          # threads waiting in next_pair
-        self._taken = 0              # pairs next_pair has returned
-        self._held = 0               # readers holding back for the consumer (HANDOVER_S)
 
     def start(self) -> None:
         if self._threads:
@@ -305,9 +290,7 @@ class BiplaneStream:
             while True:
                 pair = self.pairer.take()
                 if pair is not None:
-                    self._taken += 1
-                    if self.pairer.mode == "all":
-                        self._cond.notify_all()  # wake readers held back in all-frames mode
+                    self._cond.notify_all()  # wake readers held back in all-frames mode
                     return pair
                 if self._error is not None:
                     raise self._error
@@ -317,13 +300,7 @@ class BiplaneStream:
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
                     raise DeviceTimeoutError(f"no biplane pair within {timeout_s * 1000:.0f} ms")
-                if self._held:
-                    self._cond.notify_all()   # a reader held back for the last pair reads on now
-                self._consumers += 1
-                try:
-                    self._cond.wait(remaining)
-                finally:
-                    self._consumers -= 1
+                self._cond.wait(remaining)
 
     def _reader(self, plane: str, source: FrameSource) -> None:
         while not self._stop.is_set():
@@ -346,15 +323,6 @@ class BiplaneStream:
                 self.pairer.push(frame)
                 if self.pairer.ready:
                     self._cond.notify_all()
-                    if self._consumers and self.pairer.mode == "latest" and HANDOVER_S > 0:
-                        # Hand the pair over, and hold back while the consumer works on it (HANDOVER_S).
-                        taken = self._taken
-                        self._held += 1
-                        try:
-                            self._cond.wait_for(lambda: (self._taken > taken and self._consumers > 0)
-                                                or self._stop.is_set(), HANDOVER_S)
-                        finally:
-                            self._held -= 1
                 if self.pairer.mode == "all":
                     # Offline: never lose a frame to a full queue; let the consumer and the slower plane catch up.
                     while not self._stop.is_set() and (self.pairer.ready >= self.backlog
