@@ -310,9 +310,8 @@ class Amplifier:
         if not all(map(math.isfinite, values)):
             raise CurrentCommandError(f"set_currents got a non-finite current: {values}")
         now = self._clock()
-        commanded, current_scale, slew_scale = limit_current_list(
-            values, self._previous, now - self._previous_t, self.limits)
-        command_ma = [int(v * 1000.0) for v in commanded]   # int() rounds towards zero, like the wire
+        command_ma, current_scale, slew_scale = limit_current_list(
+            values, self._previous, now - self._previous_t, self.limits, milliamps=True)
         if dry_run:
             encode_set_currents(command_ma, 0)
             return None

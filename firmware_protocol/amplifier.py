@@ -17,15 +17,13 @@ from dataclasses import dataclass, field
 from typing import ClassVar, Union
 
 from firmware_protocol.amplifier_framing import (
-    DELIMITER,
     HEADER_SIZE,
     PROTOCOL_VERSION,
     REJECT_REASONS,
     Frame,
     FrameDecoder,
-    cobs_encode,
-    crc16_ccitt_false,
     encode_frame,
+    frame_short_body,
 )
 from firmware_protocol.errors import FrameError
 
@@ -290,7 +288,6 @@ def encode_message(msg: Message, seq: int) -> bytes:
 # SET_CURRENTS packets without the CRC, by channel count: header (version, type, seq, payload length),
 # then the payload (channel count, int32 currents), packed by one compiled struct.
 _SET_CURRENTS_PACKETS = {n: struct.Struct(f"<BBHBB{n}i") for n in range(1, MAX_CHANNELS + 1)}
-_CRC = struct.Struct("<H")
 
 
 def encode_set_currents(currents_ma: tuple[int, ...] | list[int], seq: int) -> bytes:
@@ -302,8 +299,9 @@ def encode_set_currents(currents_ma: tuple[int, ...] | list[int], seq: int) -> b
     layout = _SET_CURRENTS_PACKETS.get(n)
     if layout is None:
         raise ValueError(f"{n} channels; the protocol carries 1..{MAX_CHANNELS}")
-    body = layout.pack(PROTOCOL_VERSION, _SET_CURRENTS_TYPE, seq, layout.size - HEADER_SIZE, n, *currents_ma)
-    return DELIMITER + cobs_encode(body + _CRC.pack(crc16_ccitt_false(body))) + DELIMITER
+    # At most 16 channels: a 71-byte body, well within frame_short_body's 251.
+    return frame_short_body(layout.pack(PROTOCOL_VERSION, _SET_CURRENTS_TYPE, seq, layout.size - HEADER_SIZE, n,
+                                        *currents_ma))
 
 
 def _unpack_channels(payload: bytes, offset: int, n: int, layout: struct.Struct) -> list[tuple[int, ...]]:

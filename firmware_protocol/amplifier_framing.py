@@ -132,6 +132,14 @@ def encode_frame(frame: Frame) -> bytes:
     return DELIMITER + cobs_encode(encode_packet(frame)) + DELIMITER
 
 
+def frame_short_body(body: bytes) -> bytes:
+    """``00 | COBS(body + CRC) | 00`` for a header-and-payload ``body`` of at most 251 bytes (so the packet
+    has no 254-byte block): :func:`encode_frame`'s bytes in one function, for the per-frame current command
+    (issue 8: each call saved on it is ~1-2 us after a frame's recognition has cycled the caches)."""
+    runs = (body + _CRC.pack(binascii.crc_hqx(body, 0xFFFF))).split(b"\x00")
+    return b"\x00" + b"".join([_CODE_BYTES[len(run) + 1] + run for run in runs]) + b"\x00"
+
+
 def decode_packet(packet: bytes) -> Frame:
     """Check length, CRC and version of an unstuffed packet; raises a :class:`FrameError` subclass."""
     if len(packet) < HEADER_SIZE + CRC_SIZE:

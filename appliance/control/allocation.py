@@ -31,7 +31,6 @@ from numpy.typing import ArrayLike, NDArray
 
 from appliance.compiled import kernel, register_warm_up
 from appliance.control.actuation import (
-    _FD_STEP_M,
     ActuationModel,
     _field_and_gradient,
     _force_rows,
@@ -187,7 +186,7 @@ def _allocate_at(centres: FloatArray, axes: FloatArray, radii: FloatArray, turns
         field_norm = math.sqrt(request[3] * request[3] + request[4] * request[4] + request[5] * request[5])
         for k in range(3):
             moment[k] = moment_am2 * (request[3 + k] / field_norm if field_norm > 0.0 else request[9 + k])
-    b_per_amp, gradient = _field_and_gradient(centres, axes, radii, turns, owner, n, request[0:3] * 1e-3, _FD_STEP_M)
+    b_per_amp, gradient = _field_and_gradient(centres, axes, radii, turns, owner, n, request[0:3] * 1e-3)
     currents, scale, code, achieved_field, achieved_force, residual = _allocate(
         b_per_amp, gradient, request[3:6], request[6:9], moment, previous, dt_s, limits[0], limits[1],
         max_power_w, limits[2], rcond)

@@ -20,7 +20,7 @@ from drivers.amplifier import (
     EStopError,
     WatchdogError,
 )
-from drivers.amplifier_types import AmplifierLimits, limit_currents
+from drivers.amplifier_types import AmplifierLimits, limit_current_list, limit_currents
 from drivers.errors import DeviceTimeoutError, LinkLostError, ProtocolError
 from firmware_protocol.amplifier import (
     Ack,
@@ -361,3 +361,17 @@ def test_host_limiter_never_exceeds_a_limit_and_keeps_the_field_direction(
     assert np.all(np.abs(target) <= max_a * (1 + 1e-12))
     assert current_scale == 1.0 or np.isclose(np.max(np.abs(target)), max_a)
     np.testing.assert_allclose(commanded, previous_a + slew_scale * (target - previous_a), atol=1e-9)
+
+
+@given(st.lists(st.floats(-30, 30), min_size=8, max_size=8), st.lists(st.floats(-12, 12), min_size=8, max_size=8),
+       st.floats(0, 0.2), st.floats(0.5, 20), st.floats(1, 1000))
+def test_the_drivers_milliamps_are_the_limited_currents_truncated(requested, previous, dt_s, max_a, slew) -> None:
+    """The driver's one-pass form (``milliamps=True``) sends int(a * 1000) of the float form's currents, to
+    the unit, scaled or not (rounding to nearest, or the clamp missing, would differ)."""
+    limits = AmplifierLimits.uniform(8, max_current_a=max_a, slew_a_per_s=slew, watchdog_ms=100)
+    previous = [min(max(p, -max_a), max_a) for p in previous]
+    floats, current_scale, slew_scale = limit_current_list(requested, previous, dt_s, limits)
+    milliamps, current_ma_scale, slew_ma_scale = limit_current_list(requested, previous, dt_s, limits, milliamps=True)
+    assert milliamps == [int(v * 1000.0) for v in floats]
+    assert all(type(v) is int for v in milliamps)
+    assert (current_ma_scale, slew_ma_scale) == (current_scale, slew_scale)

@@ -278,3 +278,12 @@ def test_sequence_numbers_wrap(seq: int, than: int, newer: bool) -> None:
 def test_disable_and_clear_are_distinct_types() -> None:
     assert {Disable.TYPE, ClearFault.TYPE, GetStatus.TYPE, Hello.TYPE} == {
         MsgType.DISABLE, MsgType.CLEAR_FAULT, MsgType.GET_STATUS, MsgType.HELLO}
+
+
+@given(st.binary(max_size=251) | st.lists(st.sampled_from([0, 0, 1, 0xFF]), max_size=251).map(bytes))
+def test_the_short_framing_is_the_general_one(body: bytes) -> None:
+    """frame_short_body (the current command's framing in one function) gives encode_frame's bytes for every
+    body it takes: zero-free, all zeros, runs of every length up to 251 bytes."""
+    from firmware_protocol.amplifier_framing import frame_short_body
+
+    assert frame_short_body(body) == b"\x00" + cobs_encode(body + struct.pack("<H", crc16_ccitt_false(body))) + b"\x00"
