@@ -108,6 +108,12 @@ class _Track:
     view_outline_px: dict[str, tuple[float, float, float, float, float, float, float]] | None = None
     #: ``direction`` as plain floats (None with it), for the next frame's prediction.
     direction_xyz: tuple[float, float, float] | None = None
+    #: The heading a head claim is checked against (:func:`.plausibility.at_odds_with_track`): the direction of
+    #: the last frame whose head was identified, or of a later one whose head was not, its sign chosen to agree
+    #: with that heading (None until a head is identified). ``direction`` is no heading: an unclaimed frame's
+    #: sign is arbitrary (a cold frame's, or a withdrawn claim's), and taken as one it had a right claim on the
+    #: next frame rejected, or a wrong one passed.
+    heading: np.ndarray | None = None
 
 
 #: While tracking, a view's noise sigma is measured on one ROI and reused for the next frames (same
@@ -513,8 +519,8 @@ class PostureTracker:
                 or off_its_images(self.calibration, rec, blobs, self.settings)
                 or part_of_body(rec, self.body, self.settings)
                 or narrower_than_body(self.calibration, rec, blobs, self.body, self.settings)
-                or at_odds_with_track(rec, blobs, previous, self._track.length_mm if self._track else None,
-                                      self.settings))
+                or at_odds_with_track(rec, blobs, self._track.heading if self._track else None,
+                                      self._track.length_mm if self._track else None, self.settings))
 
     def _head_by_clean_view(self, rec: Reconstruction, blobs: dict[str, Blob], feats: dict[str, Features2D],
                             previous: np.ndarray | None) -> Reconstruction:
@@ -684,6 +690,12 @@ class PostureTracker:
         direction = posture.direction
         if direction is None and old is not None:
             direction = old.direction  # unresolved mirror ambiguity: keep the last known axis for the ROI
+        heading = old.heading if old is not None else None
+        if posture.head_identified and posture.direction is not None:
+            heading = posture.direction
+        elif heading is not None and posture.direction is not None:
+            # The axis carried on, its sign the identified heading's (one frame period turns it little).
+            heading = posture.direction if float(posture.direction @ heading) >= 0.0 else -posture.direction
         outline: dict[str, tuple[float, float, float, float, float, float, float]] = {}
         for name, view in posture.views.items():
             if view is not None:
@@ -692,7 +704,8 @@ class PostureTracker:
         self._track = _Track(posture.t, (x, y, z), direction,
                              posture.length_mm if posture.length_mm is not None else (old.length_mm if old else None),
                              velocity, view_outline_px=outline,
-                             direction_xyz=None if direction is None else tuple(direction.tolist()))
+                             direction_xyz=None if direction is None else tuple(direction.tolist()),
+                             heading=heading)
 
     def _remember_plain(self, t: float, direction: np.ndarray) -> None:
         """:meth:`_remember` of the steady pair's plain posture at ``t`` (``direction`` its direction), from
@@ -711,6 +724,7 @@ class PostureTracker:
         track.centroid = centroid
         track.direction = direction
         track.direction_xyz = direction_xyz
+        track.heading = direction   # (a plain frame's head is identified)
         track.length_mm = length
         track.lost_frames = 0
         track.view_outline_px = {"p": outline_p, "q": outline_q}

@@ -531,3 +531,45 @@ def test_wide_robot_has_its_background_interpolated_along_structure(scene: tuple
                               body=spec).settings.background_along_structure
     narrow = RecognitionSettings(along_structure_min_diameter_mm=spec.diameter_mm + 0.5)
     assert not PostureTracker(calibration, narrow, body=spec).settings.background_along_structure
+
+
+def test_the_heading_a_claim_is_checked_against_comes_from_frames_whose_head_was_identified(
+        scene: tuple[Calibration, BiplaneRenderer]) -> None:
+    # A frame whose head is not identified has a direction of arbitrary sign (a cold frame's, a withdrawn
+    # claim's): remembered as the heading, it had the next frame's head claim over a vessel rejected as "180 deg
+    # away from the tracked heading" (seed 7757247 robot 7 pose 17, tracked). The heading is the last identified
+    # one, carried through unclaimed frames with its sign, and there is none before a head is identified.
+    calibration, _ = scene
+    tracker = PostureTracker(calibration)
+    direction = np.array([0.6, 0.3, 0.74]) / np.linalg.norm([0.6, 0.3, 0.74])
+    centre = np.array([2.0, -1.0, 3.0])
+    blobs = {"p": _blob(7.0, 0.3), "q": _blob(7.0)}   # view p over another structure: the frame is in doubt
+
+    def claimed(at_head: bool):
+        feats = _rod_features(calibration, centre, direction, 10.0, {"p": at_head, "q": True})
+        feats["q"] = replace(feats["q"], head_index=None)
+        rec = reconstruct(calibration, tracker.F, feats["p"], feats["q"], tracker.settings)
+        assert rec.head_identified and float(np.dot(rec.direction, direction)) == pytest.approx(
+            1.0 if at_head else -1.0, abs=1e-3)
+        return rec, feats
+
+    right, feats = claimed(True)
+    wrong, _ = claimed(False)
+    # The same frame, its head not identified, the direction's sign the other way.
+    unclaimed = replace(right, head_identified=False, direction=-right.direction, tips=right.tips[::-1].copy())
+
+    def remember(rec) -> None:
+        tracker._remember(tracker._posture(0, 0.0, rec, blobs))
+
+    def heading_rejects(rec) -> bool:
+        reason = tracker._rejection(rec, blobs, feats, tracker._track.direction)
+        return reason is not None and "tracked heading" in reason
+
+    remember(unclaimed)
+    assert not heading_rejects(right) and not heading_rejects(wrong)
+    assert tracker._track.heading is None
+    remember(right)
+    assert not heading_rejects(right) and heading_rejects(wrong)
+    remember(unclaimed)   # carried through with the identified heading's sign
+    assert float(np.dot(tracker._track.heading, direction)) > 0.999
+    assert not heading_rejects(right) and heading_rejects(wrong)
