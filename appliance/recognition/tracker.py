@@ -557,7 +557,10 @@ class PostureTracker:
     def _head_in_doubt(self, rec: Reconstruction, blobs: dict[str, Blob],
                        feats: dict[str, Features2D]) -> Reconstruction:
         """The head claim withheld where it rests on one view over another structure and its confidence
-        (:func:`head_claim_confidence`) is below ``settings.head_claim_min_confidence``.
+        (:func:`head_claim_confidence`) is below ``settings.head_claim_min_confidence``, or, the body known, the
+        ends measured are off the body's length by more than ``settings.head_claim_max_length_error`` (the blob
+        ran on into the structure or lost an end: the "ramp" claimed is the structure's, seed 3162277 robot 3
+        pose 5, a 53 px ramp at a run-on end, 31.3 mm against the body's 19).
 
         A wrong claim swaps the tips (a body length of tip error); an unidentified head leaves both
         orders open, and the tips keep what the reconstruction measured (the end claimed keeps its
@@ -569,12 +572,19 @@ class PostureTracker:
         voters = [name for name in VIEWS if feats[name].head_index is not None]
         if len(voters) != 1 or not blobs[voters[0]].clutter > self.settings.max_clutter:
             return rec
+        final = {name: replace(feat, head_index=None) for name, feat in rec.view_features.items()}
+        body_length = self.body.length_mm if self.body is not None else None
+        if (body_length and rec.length_mm is not None
+                and abs(rec.length_mm / body_length - 1.0) > self.settings.head_claim_max_length_error):
+            reasons = rec.reasons + [f"the head is not claimed: only view {voters[0]}, over another structure, sees "
+                                     f"it, and the ends measured are {rec.length_mm:.1f} mm apart, not the body's "
+                                     f"{body_length:g} mm (the blob runs on into the structure or lost an end to it)"]
+            return replace(rec, head_identified=False, view_features=final, reasons=reasons)
         confidence = head_claim_confidence(
             {name: (feats[name], blobs[name].clutter, rec.view_features[name].head_index) for name in VIEWS},
             self.settings.head_ramp_floor_px)
         if confidence >= self.settings.head_claim_min_confidence:
             return rec
-        final = {name: replace(feat, head_index=None) for name, feat in rec.view_features.items()}
         reasons = rec.reasons + [f"the head is not claimed: only view {voters[0]}, over another structure, sees it, "
                                  f"and the evidence is weak ({confidence:.2f} of the "
                                  f"{self.settings.head_claim_min_confidence:g} needed, the other view's ramps "
