@@ -108,6 +108,12 @@ class _Track:
     view_outline_px: dict[str, tuple[float, float, float, float, float, float, float]] | None = None
     #: ``direction`` as plain floats (None with it), for the next frame's prediction.
     direction_xyz: tuple[float, float, float] | None = None
+    #: The heading a head claim is checked against (:func:`.plausibility.at_odds_with_track`): the direction of
+    #: the last frame whose head was identified, or of a later one whose head was not, its sign chosen to agree
+    #: with that heading (None until a head is identified). ``direction`` is no heading: an unclaimed frame's
+    #: sign is arbitrary (a cold frame's, or a withdrawn claim's), and taken as one it had a right claim on the
+    #: next frame rejected, or a wrong one passed.
+    heading: np.ndarray | None = None
 
 
 #: While tracking, a view's noise sigma is measured on one ROI and reused for the next frames (same
@@ -513,8 +519,8 @@ class PostureTracker:
                 or off_its_images(self.calibration, rec, blobs, self.settings)
                 or part_of_body(rec, self.body, self.settings)
                 or narrower_than_body(self.calibration, rec, blobs, self.body, self.settings)
-                or at_odds_with_track(rec, blobs, previous, self._track.length_mm if self._track else None,
-                                      self.settings))
+                or at_odds_with_track(rec, blobs, self._track.heading if self._track else None,
+                                      self._track.length_mm if self._track else None, self.settings))
 
     def _head_by_clean_view(self, rec: Reconstruction, blobs: dict[str, Blob], feats: dict[str, Features2D],
                             previous: np.ndarray | None) -> Reconstruction:
@@ -551,7 +557,10 @@ class PostureTracker:
     def _head_in_doubt(self, rec: Reconstruction, blobs: dict[str, Blob],
                        feats: dict[str, Features2D]) -> Reconstruction:
         """The head claim withheld where it rests on one view over another structure and its confidence
-        (:func:`head_claim_confidence`) is below ``settings.head_claim_min_confidence``.
+        (:func:`head_claim_confidence`) is below ``settings.head_claim_min_confidence``, or, the body known, the
+        ends measured are off the body's length by more than ``settings.head_claim_max_length_error`` (the blob
+        ran on into the structure or lost an end: the "ramp" claimed is the structure's, seed 3162277 robot 3
+        pose 5, a 53 px ramp at a run-on end, 31.3 mm against the body's 19).
 
         A wrong claim swaps the tips (a body length of tip error); an unidentified head leaves both
         orders open, and the tips keep what the reconstruction measured (the end claimed keeps its
@@ -563,12 +572,19 @@ class PostureTracker:
         voters = [name for name in VIEWS if feats[name].head_index is not None]
         if len(voters) != 1 or not blobs[voters[0]].clutter > self.settings.max_clutter:
             return rec
+        final = {name: replace(feat, head_index=None) for name, feat in rec.view_features.items()}
+        body_length = self.body.length_mm if self.body is not None else None
+        if (body_length and rec.length_mm is not None
+                and abs(rec.length_mm / body_length - 1.0) > self.settings.head_claim_max_length_error):
+            reasons = rec.reasons + [f"the head is not claimed: only view {voters[0]}, over another structure, sees "
+                                     f"it, and the ends measured are {rec.length_mm:.1f} mm apart, not the body's "
+                                     f"{body_length:g} mm (the blob runs on into the structure or lost an end to it)"]
+            return replace(rec, head_identified=False, view_features=final, reasons=reasons)
         confidence = head_claim_confidence(
             {name: (feats[name], blobs[name].clutter, rec.view_features[name].head_index) for name in VIEWS},
             self.settings.head_ramp_floor_px)
         if confidence >= self.settings.head_claim_min_confidence:
             return rec
-        final = {name: replace(feat, head_index=None) for name, feat in rec.view_features.items()}
         reasons = rec.reasons + [f"the head is not claimed: only view {voters[0]}, over another structure, sees it, "
                                  f"and the evidence is weak ({confidence:.2f} of the "
                                  f"{self.settings.head_claim_min_confidence:g} needed, the other view's ramps "
@@ -684,6 +700,12 @@ class PostureTracker:
         direction = posture.direction
         if direction is None and old is not None:
             direction = old.direction  # unresolved mirror ambiguity: keep the last known axis for the ROI
+        heading = old.heading if old is not None else None
+        if posture.head_identified and posture.direction is not None:
+            heading = posture.direction
+        elif heading is not None and posture.direction is not None:
+            # The axis carried on, its sign the identified heading's (one frame period turns it little).
+            heading = posture.direction if float(posture.direction @ heading) >= 0.0 else -posture.direction
         outline: dict[str, tuple[float, float, float, float, float, float, float]] = {}
         for name, view in posture.views.items():
             if view is not None:
@@ -692,7 +714,8 @@ class PostureTracker:
         self._track = _Track(posture.t, (x, y, z), direction,
                              posture.length_mm if posture.length_mm is not None else (old.length_mm if old else None),
                              velocity, view_outline_px=outline,
-                             direction_xyz=None if direction is None else tuple(direction.tolist()))
+                             direction_xyz=None if direction is None else tuple(direction.tolist()),
+                             heading=heading)
 
     def _remember_plain(self, t: float, direction: np.ndarray) -> None:
         """:meth:`_remember` of the steady pair's plain posture at ``t`` (``direction`` its direction), from
@@ -711,6 +734,7 @@ class PostureTracker:
         track.centroid = centroid
         track.direction = direction
         track.direction_xyz = direction_xyz
+        track.heading = direction   # (a plain frame's head is identified)
         track.length_mm = length
         track.lost_frames = 0
         track.view_outline_px = {"p": outline_p, "q": outline_q}
