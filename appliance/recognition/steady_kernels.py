@@ -403,7 +403,8 @@ def lean_view(image, coarse, fy, fx, log_table, g, prev, po, qu, qv, sigma, p, n
     at_support = _carve(at_mask, n_px)
     at_marks = _carve(at_support, n_px)
     at_near = _carve(at_marks, 4 * hh * (ww + 1))
-    if _carve(at_near, n_px) > work.size or n_px > weights_flat.size:
+    at_fill = _carve(at_near, n_px)
+    if _carve(at_fill, view_kernels.FILL_SCRATCH_PER_LINE * max(hh, ww)) > work.size or n_px > weights_flat.size:
         return False, 0, 0, 0, 0
     a = work[at_a:at_a + 4 * n_px].view(np.float32).reshape((hh, ww))
     tmp = work[at_tmp:at_tmp + 4 * n_px].view(np.float32).reshape((hh, ww))
@@ -539,8 +540,8 @@ def lean_view(image, coarse, fy, fx, log_table, g, prev, po, qu, qv, sigma, p, n
             s_, t_ = gx * ax + gy * ay, -gx * ay + gy * ax
             srow_[x - sx0] = 1 if (s_ >= lo_s_ and s_ <= hi_s_ and abs(t_) <= hi_t) else 0
     background = tmp  # (the row pass is done with)
-    view_kernels._fill_values(smooth, 0, 0, hh, ww, support, sy0, sy1, sx0, sx1, fill_rows, fill_cols,
-                              abs(ax) < abs(ay), background)
+    view_kernels.fill_values_into(smooth, 0, 0, hh, ww, support, sy0, sy1, sx0, sx1, fill_rows, fill_cols,
+                                  abs(ax) < abs(ay), background, work[at_fill:])
     # The weights near the body, their window, and how much the background under the body varies.
     # (view_kernels._dilated_box's dilation of the body, from its mask's runs on its bounding box grown by the
     # element's radius, the marks' prefix sums taken in the same pass as the support's test.)
