@@ -532,13 +532,15 @@ def lean_view(image, coarse, fy, fx, log_table, g, prev, po, qu, qv, sigma, p, n
     sx0, sx1 = max(math.floor(gx_lo) - 1, 0), min(math.ceil(gx_hi) + 2, ww)
     sh, sw = max(sy1 - sy0, 0), max(sx1 - sx0, 0)
     support = work[at_support:at_support + sh * sw].reshape((sh, sw))
+    # (Branch-free on unsigned indices, the same arithmetic per pixel: the compiler vectorises it.)
+    fx0 = float(sx0)
     for y in range(sy0, sy1):
         gy = y - oy
         srow_ = support[y - sy0]
-        for x in range(sx0, sx1):
-            gx = x - ox
+        for i in range(np.uint64(sw)):
+            gx = (fx0 + float(i)) - ox
             s_, t_ = gx * ax + gy * ay, -gx * ay + gy * ax
-            srow_[x - sx0] = 1 if (s_ >= lo_s_ and s_ <= hi_s_ and abs(t_) <= hi_t) else 0
+            srow_[i] = np.uint8((s_ >= lo_s_) & (s_ <= hi_s_) & (abs(t_) <= hi_t))
     background = tmp  # (the row pass is done with)
     view_kernels.fill_values_into(smooth, 0, 0, hh, ww, support, sy0, sy1, sx0, sx1, fill_rows, fill_cols,
                                   abs(ax) < abs(ay), background, work[at_fill:])
