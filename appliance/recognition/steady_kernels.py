@@ -567,21 +567,38 @@ def lean_view(image, coarse, fy, fx, log_table, g, prev, po, qu, qv, sigma, p, n
                 x += 1
             if start < nx0 + nw:
                 view_kernels._mark_run(marks, y, start - nx0, x - nx0, near_hw)
+    # Near pixels lie in the support's box: rows outside it are cleared, and in a row the prefix sum up to the
+    # box is taken first, then the box's part branch-free (the box's columns on unsigned indices).
     ky0, ky1, kx0, kx1 = hh, -1, ww, -1
     bmin, bmax = np.inf, -np.inf
+    qx0, qx1 = max(sx0, nx0), min(sx1, nx0 + nw)  # the near box's columns inside the support's
     for y in range(nh):
-        acc = 0
-        mrow = marks[y]
+        nrow = near[y]
         for x in range(nw):
+            nrow[x] = 0
+        yy = ny0 + y
+        if yy < sy0 or yy >= sy1 or qx1 <= qx0:
+            continue
+        mrow = marks[y]
+        acc = 0
+        for x in range(qx0 - nx0):
             acc += mrow[x]
-            yy, xx = ny0 + y, nx0 + x
-            inside = (acc > 0 and yy >= sy0 and yy < sy1 and xx >= sx0 and xx < sx1
-                      and support[yy - sy0, xx - sx0] != 0)
-            near[y, x] = 1 if inside else 0
-            if inside:
-                ky0, ky1, kx0, kx1 = min(ky0, yy), max(ky1, yy), min(kx0, xx), max(kx1, xx)
-                b = float(background[yy, xx])
-                bmin, bmax = min(bmin, b), max(bmax, b)
+        mseg, nseg = marks[y, qx0 - nx0:qx1 - nx0], near[y, qx0 - nx0:qx1 - nx0]
+        sseg, bseg = support[yy - sy0, qx0 - sx0:qx1 - sx0], background[yy, qx0:qx1]
+        first, last = -1, -1
+        for i in range(np.uint64(qx1 - qx0)):
+            acc += mseg[i]
+            inside = (acc > 0) & (sseg[i] != 0)
+            nseg[i] = np.uint8(inside)
+            b = float(bseg[i])
+            bmin = min(bmin, b) if inside else bmin
+            bmax = max(bmax, b) if inside else bmax
+        for i in range(qx1 - qx0 - 1, -1, -1):
+            first = i if nseg[i] else first
+        for i in range(qx1 - qx0):
+            last = i if nseg[i] else last
+        if first >= 0:
+            ky0, ky1, kx0, kx1 = min(ky0, yy), max(ky1, yy), min(kx0, qx0 + first), max(kx1, qx0 + last)
     if ky1 < 0:
         return False, 0, 0, 0, 0
     clutter = (bmax - bmin) / height
@@ -594,16 +611,15 @@ def lean_view(image, coarse, fy, fx, log_table, g, prev, po, qu, qv, sigma, p, n
     wh, wwid = ky1 - ky0, kx1 - kx0
     weights = weights_flat[:wh * wwid].reshape((wh, wwid))
     body = body_flat[:wh * wwid].reshape((wh, wwid))
+    # (The weights' window lies in the near box, which holds the body's box and the near pixels: one pass, the
+    # weights where near, zero elsewhere.)
     for y in range(wh):
-        wrow, brow, mrow = weights[y], body[y], mask[ky0 + y]
-        for x in range(wwid):
-            wrow[x] = zero
-            brow[x] = mrow[kx0 + x]
-    for y in range(nh):
-        for x in range(nw):
-            if near[y, x]:
-                yy, xx = ny0 + y, nx0 + x
-                weights[yy - ky0, xx - kx0] = a[yy, xx] - background[yy, xx]
+        wrow, brow, mrow = weights[y], body[y], mask[ky0 + y, kx0:kx1]
+        nrow = near[ky0 + y - ny0, kx0 - nx0:kx1 - nx0]
+        arow, grow = a[ky0 + y, kx0:kx1], background[ky0 + y, kx0:kx1]
+        for i in range(np.uint64(wwid)):
+            wrow[i] = arow[i] - grow[i] if nrow[i] else zero
+            brow[i] = mrow[i]
     cap = cap_fraction * height if cap_fraction < 1.0 else np.inf
     # The weights' moments once, for the refinement's numbers and the features (and the capped ones' with them:
     # moments_and_capped's first six are moments').
