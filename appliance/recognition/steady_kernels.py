@@ -403,7 +403,8 @@ def lean_view(image, coarse, fy, fx, log_table, g, prev, po, qu, qv, sigma, p, n
     at_support = _carve(at_mask, n_px)
     at_marks = _carve(at_support, n_px)
     at_near = _carve(at_marks, 4 * hh * (ww + 1))
-    if _carve(at_near, n_px) > work.size or n_px > weights_flat.size:
+    at_fill = _carve(at_near, n_px)
+    if _carve(at_fill, view_kernels.FILL_SCRATCH_PER_LINE * max(hh, ww)) > work.size or n_px > weights_flat.size:
         return False, 0, 0, 0, 0
     a = work[at_a:at_a + 4 * n_px].view(np.float32).reshape((hh, ww))
     tmp = work[at_tmp:at_tmp + 4 * n_px].view(np.float32).reshape((hh, ww))
@@ -531,16 +532,18 @@ def lean_view(image, coarse, fy, fx, log_table, g, prev, po, qu, qv, sigma, p, n
     sx0, sx1 = max(math.floor(gx_lo) - 1, 0), min(math.ceil(gx_hi) + 2, ww)
     sh, sw = max(sy1 - sy0, 0), max(sx1 - sx0, 0)
     support = work[at_support:at_support + sh * sw].reshape((sh, sw))
+    # (Branch-free on unsigned indices, the same arithmetic per pixel: the compiler vectorises it.)
+    fx0 = float(sx0)
     for y in range(sy0, sy1):
         gy = y - oy
         srow_ = support[y - sy0]
-        for x in range(sx0, sx1):
-            gx = x - ox
+        for i in range(np.uint64(sw)):
+            gx = (fx0 + float(i)) - ox
             s_, t_ = gx * ax + gy * ay, -gx * ay + gy * ax
-            srow_[x - sx0] = 1 if (s_ >= lo_s_ and s_ <= hi_s_ and abs(t_) <= hi_t) else 0
+            srow_[i] = np.uint8((s_ >= lo_s_) & (s_ <= hi_s_) & (abs(t_) <= hi_t))
     background = tmp  # (the row pass is done with)
-    view_kernels._fill_values(smooth, 0, 0, hh, ww, support, sy0, sy1, sx0, sx1, fill_rows, fill_cols,
-                              abs(ax) < abs(ay), background)
+    view_kernels.fill_values_into(smooth, 0, 0, hh, ww, support, sy0, sy1, sx0, sx1, fill_rows, fill_cols,
+                                  abs(ax) < abs(ay), background, work[at_fill:])
     # The weights near the body, their window, and how much the background under the body varies.
     # (view_kernels._dilated_box's dilation of the body, from its mask's runs on its bounding box grown by the
     # element's radius, the marks' prefix sums taken in the same pass as the support's test.)
@@ -564,21 +567,38 @@ def lean_view(image, coarse, fy, fx, log_table, g, prev, po, qu, qv, sigma, p, n
                 x += 1
             if start < nx0 + nw:
                 view_kernels._mark_run(marks, y, start - nx0, x - nx0, near_hw)
+    # Near pixels lie in the support's box: rows outside it are cleared, and in a row the prefix sum up to the
+    # box is taken first, then the box's part branch-free (the box's columns on unsigned indices).
     ky0, ky1, kx0, kx1 = hh, -1, ww, -1
     bmin, bmax = np.inf, -np.inf
+    qx0, qx1 = max(sx0, nx0), min(sx1, nx0 + nw)  # the near box's columns inside the support's
     for y in range(nh):
-        acc = 0
-        mrow = marks[y]
+        nrow = near[y]
         for x in range(nw):
+            nrow[x] = 0
+        yy = ny0 + y
+        if yy < sy0 or yy >= sy1 or qx1 <= qx0:
+            continue
+        mrow = marks[y]
+        acc = 0
+        for x in range(qx0 - nx0):
             acc += mrow[x]
-            yy, xx = ny0 + y, nx0 + x
-            inside = (acc > 0 and yy >= sy0 and yy < sy1 and xx >= sx0 and xx < sx1
-                      and support[yy - sy0, xx - sx0] != 0)
-            near[y, x] = 1 if inside else 0
-            if inside:
-                ky0, ky1, kx0, kx1 = min(ky0, yy), max(ky1, yy), min(kx0, xx), max(kx1, xx)
-                b = float(background[yy, xx])
-                bmin, bmax = min(bmin, b), max(bmax, b)
+        mseg, nseg = marks[y, qx0 - nx0:qx1 - nx0], near[y, qx0 - nx0:qx1 - nx0]
+        sseg, bseg = support[yy - sy0, qx0 - sx0:qx1 - sx0], background[yy, qx0:qx1]
+        first, last = -1, -1
+        for i in range(np.uint64(qx1 - qx0)):
+            acc += mseg[i]
+            inside = (acc > 0) & (sseg[i] != 0)
+            nseg[i] = np.uint8(inside)
+            b = float(bseg[i])
+            bmin = min(bmin, b) if inside else bmin
+            bmax = max(bmax, b) if inside else bmax
+        for i in range(qx1 - qx0 - 1, -1, -1):
+            first = i if nseg[i] else first
+        for i in range(qx1 - qx0):
+            last = i if nseg[i] else last
+        if first >= 0:
+            ky0, ky1, kx0, kx1 = min(ky0, yy), max(ky1, yy), min(kx0, qx0 + first), max(kx1, qx0 + last)
     if ky1 < 0:
         return False, 0, 0, 0, 0
     clutter = (bmax - bmin) / height
@@ -591,16 +611,15 @@ def lean_view(image, coarse, fy, fx, log_table, g, prev, po, qu, qv, sigma, p, n
     wh, wwid = ky1 - ky0, kx1 - kx0
     weights = weights_flat[:wh * wwid].reshape((wh, wwid))
     body = body_flat[:wh * wwid].reshape((wh, wwid))
+    # (The weights' window lies in the near box, which holds the body's box and the near pixels: one pass, the
+    # weights where near, zero elsewhere.)
     for y in range(wh):
-        wrow, brow, mrow = weights[y], body[y], mask[ky0 + y]
-        for x in range(wwid):
-            wrow[x] = zero
-            brow[x] = mrow[kx0 + x]
-    for y in range(nh):
-        for x in range(nw):
-            if near[y, x]:
-                yy, xx = ny0 + y, nx0 + x
-                weights[yy - ky0, xx - kx0] = a[yy, xx] - background[yy, xx]
+        wrow, brow, mrow = weights[y], body[y], mask[ky0 + y, kx0:kx1]
+        nrow = near[ky0 + y - ny0, kx0 - nx0:kx1 - nx0]
+        arow, grow = a[ky0 + y, kx0:kx1], background[ky0 + y, kx0:kx1]
+        for i in range(np.uint64(wwid)):
+            wrow[i] = arow[i] - grow[i] if nrow[i] else zero
+            brow[i] = mrow[i]
     cap = cap_fraction * height if cap_fraction < 1.0 else np.inf
     # The weights' moments once, for the refinement's numbers and the features (and the capped ones' with them:
     # moments_and_capped's first six are moments').

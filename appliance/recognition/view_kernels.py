@@ -703,58 +703,91 @@ def _end_stops(smooth, wy0, wx0, ys, xs, n, s_of, s_lo, s_hi, tolerance, fade_st
     return stops
 
 
+#: Bytes of :func:`fill_values_into`'s scratch per line of the support's box (``max(sh, sw)`` lines): each line's
+#: first and last supported pixel (int64), its two end means and their smoothing (float32), its line (float64).
+FILL_SCRATCH_PER_LINE = 2 * 8 + 4 * 4 + 3 * 8
+
+
 @kernel
 def _fill_values(smooth, wy0, wx0, hh, ww, support, sy0, sy1, sx0, sx1, fill_rows, fill_cols,
                  transpose, out):  # pragma: no cover - compiled
+    """:func:`fill_values_into` with a scratch of its own."""
+    lines = max(sy1 - sy0, sx1 - sx0, 0)
+    scratch = np.empty(FILL_SCRATCH_PER_LINE * lines, dtype=np.uint8)
+    fill_values_into(smooth, wy0, wx0, hh, ww, support, sy0, sy1, sx0, sx1, fill_rows, fill_cols, transpose, out,
+                     scratch)
+
+
+@kernel
+def fill_values_into(smooth, wy0, wx0, hh, ww, support, sy0, sy1, sx0, sx1, fill_rows, fill_cols,
+                     transpose, out, scratch):  # pragma: no cover - compiled
     """The background under the body, written into ``out`` on the support (window px).
 
     Each column (a row if ``transpose``) crossing the support has its supported run replaced by the
     straight line between the means of ``fill_rows`` pixels beyond either end (clamped to the window),
     those means smoothed over ``fill_cols`` neighbouring lines (edge-replicated). Exact for a vessel
     crossing the robot, only slightly low for a vessel it lies in. ``support`` covers the box
-    ``[sy0, sy1) x [sx0, sx1)`` of the window; each line crosses it once (it is convex)."""
+    ``[sy0, sy1) x [sx0, sx1)`` of the window; each line crosses it once (it is convex). ``scratch``
+    (uint8) holds at least :data:`FILL_SCRATCH_PER_LINE` ``x max(sy1 - sy0, sx1 - sx0)`` bytes: no
+    allocation here (issue 8: the lean pass passes a part of its workspace)."""
     if transpose:
         line_len, l0, l1 = ww, sy0, sy1
     else:
         line_len, l0, l1 = hh, sx0, sx1
+    nl = l1 - l0
+    if nl <= 0 or sy1 <= sy0 or sx1 <= sx0:
+        return
+    cap = max(sy1 - sy0, sx1 - sx0)
+    ends = scratch[:16 * cap].view(np.int64)
+    firsts, lasts = ends[:nl], ends[cap:cap + nl]
+    values = scratch[16 * cap:32 * cap].view(np.float32)
+    lines = scratch[32 * cap:56 * cap].view(np.float64)
+    # Each line's first and last supported pixel, in one pass over the support in its memory order (the
+    # column-wise searches this replaced read it across rows; issue 8). Branch-free, unsigned indices.
+    for j in range(nl):
+        firsts[j], lasts[j] = -1, -1
+    sw = sx1 - sx0
+    if transpose:
+        for j in range(nl):
+            srow = support[j]
+            first, last = -1, -1
+            for x in range(sw - 1, -1, -1):
+                first = x if srow[x] else first
+            for x in range(sw):
+                last = x if srow[x] else last
+            if first >= 0:
+                firsts[j], lasts[j] = first + sx0, last + sx0
+    else:
+        ufirst = firsts[:sw]
+        ulast = lasts[:sw]
+        for r in range(sy1 - 1, sy0 - 1, -1):
+            srow = support[r - sy0]
+            for x in range(np.uint64(sw)):
+                ufirst[x] = r if srow[x] else ufirst[x]
+        for r in range(sy0, sy1):
+            srow = support[r - sy0]
+            for x in range(np.uint64(sw)):
+                ulast[x] = r if srow[x] else ulast[x]
     c0, c1 = -1, -1
-    for c in range(l0, l1):
-        hit = False
-        if transpose:
-            for r in range(sx0, sx1):
-                if support[c - sy0, r - sx0]:
-                    hit = True
-                    break
-        else:
-            for r in range(sy0, sy1):
-                if support[r - sy0, c - sx0]:
-                    hit = True
-                    break
-        if hit:
+    for j in range(nl):
+        if firsts[j] >= 0:
             if c0 < 0:
-                c0 = c
-            c1 = c + 1
+                c0 = j
+            c1 = j + 1
     if c0 < 0:
         return
     nc = c1 - c0
-    # (Arrays of the same type in one allocation each: a kernel's allocations are ~10 % of a steady pair.)
-    ends = np.empty((2, nc), dtype=np.int64)
-    tops, bottoms = ends[0], ends[1]
-    values = np.empty((2, nc), dtype=np.float32)
-    v_top, v_bottom = values[0], values[1]
+    tops, bottoms = firsts[c0:c1], lasts[c0:c1]
+    for i in range(nc):
+        tops[i] -= 1
+        bottoms[i] += 1
+    c0 += l0
+    c1 += l0
+    v_top, v_bottom = values[:nc], values[cap:cap + nc]
     third = np.float32(fill_rows)
-    r_lo, r_hi = (sx0, sx1) if transpose else (sy0, sy1)
     for i in range(nc):
         c = c0 + i
-        first, last = -1, -1
-        for r in range(r_lo, r_hi):
-            inside = support[c - sy0, r - sx0] if transpose else support[r - sy0, c - sx0]
-            if inside:
-                if first < 0:
-                    first = r
-                last = r
-        top, bottom = first - 1, last + 1
-        tops[i], bottoms[i] = top, bottom
+        top, bottom = tops[i], bottoms[i]
         acc_t = np.float32(0.0)
         acc_b = np.float32(0.0)
         for k in range(fill_rows):
@@ -770,8 +803,7 @@ def _fill_values(smooth, wy0, wx0, hh, ww, support, sy0, sy1, sx0, sx1, fill_row
     if nc >= fill_cols:
         half = fill_cols // 2
         kern = np.float32(1.0) / np.float32(fill_cols)
-        smoothed = np.empty((2, nc), dtype=np.float32)
-        sm_t, sm_b = smoothed[0], smoothed[1]
+        sm_t, sm_b = values[2 * cap:2 * cap + nc], values[3 * cap:3 * cap + nc]
         for i in range(nc):
             acc_t = np.float32(0.0)
             acc_b = np.float32(0.0)
@@ -798,8 +830,7 @@ def _fill_values(smooth, wy0, wx0, hh, ww, support, sy0, sy1, sx0, sx1, fill_row
         return
     # Lines are columns: filled row by row (the arrays' order, every line's division in one vector
     # loop) with each pixel's value as its column gives it.
-    lines = np.empty((3, nc))
-    vts, rises, spans = lines[0], lines[1], lines[2]
+    vts, rises, spans = lines[:nc], lines[cap:cap + nc], lines[2 * cap:2 * cap + nc]
     for i in range(nc):
         vts[i], rises[i] = float(v_top[i]), float(v_bottom[i] - v_top[i])
         spans[i] = float(np.float32(bottoms[i] - tops[i]))

@@ -288,3 +288,59 @@ def test_the_background_under_the_body_follows_a_vessel_crossing_it_obliquely(an
     # (0.15 measured, the vessel's peak over the blob's; without the vessel 0.003).
     assert blob.centroid_px == pytest.approx((140.0, 64.0), abs=0.01)
     assert blob.clutter > 0.1 > 0.03 > clean.clutter
+
+
+def _fill_reference(smooth, support, sy0, sx0, fill_rows, fill_cols, transpose):  # type: ignore[no-untyped-def]
+    """The background fill as its docstring states it, line by line in numpy (float64; the kernel's float32)."""
+    out = np.full(smooth.shape, np.nan)
+    sup = np.zeros(smooth.shape, dtype=bool)
+    sup[sy0:sy0 + support.shape[0], sx0:sx0 + support.shape[1]] = support != 0
+    img = smooth.astype(np.float64)
+    if transpose:
+        img, sup, out = img.T, sup.T, out.T
+    hits = [c for c in range(sup.shape[1]) if sup[:, c].any()]
+    c0, c1 = hits[0], hits[-1] + 1
+    ends, means = [], []
+    n = img.shape[0]
+    for c in range(c0, c1):
+        rows = np.flatnonzero(sup[:, c])
+        top, bottom = (rows[0] - 1, rows[-1] + 1) if rows.size else (-2, 0)
+        ends.append((top, bottom))
+        means.append((img[[max(top - k, 0) for k in range(fill_rows)], c].mean(),
+                      img[[min(bottom + k, n - 1) for k in range(fill_rows)], c].mean()))
+    means_a = np.array(means)
+    nc = c1 - c0
+    if nc >= fill_cols:
+        half = fill_cols // 2
+        means_a = np.array([means_a[[min(max(i + k, 0), nc - 1) for k in range(-half, half + 1)]].mean(axis=0)
+                            for i in range(nc)])
+    for i, (top, bottom) in enumerate(ends):
+        for r in range(top + 1, bottom):
+            if sup[r, c0 + i]:
+                out[r, c0 + i] = means_a[i, 0] + (means_a[i, 1] - means_a[i, 0]) * (r - top) / (bottom - top)
+    return out.T if transpose else out
+
+
+@pytest.mark.parametrize("transpose", [False, True])
+def test_the_background_fill_interpolates_each_line_of_the_support_and_needs_no_clean_scratch(
+        transpose: bool) -> None:
+    # A tilted rectangle's support on a random image: each line's run replaced by the line between the means
+    # beyond its ends (smoothed across lines), whatever the scratch held before (NaN bytes here).
+    rng = np.random.default_rng(3)
+    hh, ww = 40, 50
+    smooth = rng.normal(size=(hh, ww)).astype(np.float32)
+    sy0, sy1, sx0, sx1 = 6, 34, 9, 41
+    yy, xx = np.mgrid[sy0:sy1, sx0:sx1]
+    ax, ay = math.cos(0.6), math.sin(0.6)
+    s_, t_ = (xx - 25.0) * ax + (yy - 20.0) * ay, -(xx - 25.0) * ay + (yy - 20.0) * ax
+    support = ((np.abs(s_) <= 12.0) & (np.abs(t_) <= 4.0)).astype(np.uint8)
+    expected = _fill_reference(smooth, support, sy0, sx0, 3, 5, transpose)
+    scratch = np.full(vk.FILL_SCRATCH_PER_LINE * max(sy1 - sy0, sx1 - sx0), 0xFF, dtype=np.uint8)
+    got = np.full((hh, ww), np.nan, dtype=np.float32)
+    vk.fill_values_into(smooth, 0, 0, hh, ww, support, sy0, sy1, sx0, sx1, 3, 5, transpose, got, scratch)
+    assert np.array_equal(np.isnan(got), np.isnan(expected))
+    assert int(np.isfinite(got).sum()) == int(support.sum())
+    np.testing.assert_allclose(got[np.isfinite(got)], expected[np.isfinite(expected)], rtol=0, atol=1e-5)
+    fresh = np.full((hh, ww), np.nan, dtype=np.float32)
+    vk._fill_values(smooth, 0, 0, hh, ww, support, sy0, sy1, sx0, sx1, 3, 5, transpose, fresh)
+    assert np.array_equal(got, fresh, equal_nan=True)
