@@ -288,3 +288,51 @@ def test_the_background_under_the_body_follows_a_vessel_crossing_it_obliquely(an
     # (0.15 measured, the vessel's peak over the blob's; without the vessel 0.003).
     assert blob.centroid_px == pytest.approx((140.0, 64.0), abs=0.01)
     assert blob.clutter > 0.1 > 0.03 > clean.clutter
+
+
+def _reference_profile(weights: np.ndarray, c0: float, c1: float, v0: float, v1: float) -> tuple[np.ndarray, float]:
+    """The axial profile pixel by pixel in row-major order (the kernel's arithmetic before issue 8's spans)."""
+    h, w = weights.shape
+    s = [(x - c0) * v0 + (y - c1) * v1 for y in range(h) for x in range(w) if weights[y, x] != 0]
+    s0 = math.floor(min(s)) - 2.0
+    n = int(max(s) - s0) + 4
+    lower, upper = np.zeros(n), np.zeros(n)
+    for y in range(h):
+        for x in range(w):
+            wt = float(weights[y, x])
+            if wt != 0:
+                u = ((x - c0) * v0 + (y - c1) * v1) - s0
+                i = int(u)
+                lower[i] += wt * (1.0 - (u - i))
+                upper[i + 1] += wt * (u - i)
+    raw = lower + upper
+    profile = raw.copy()
+    for i in range(1, n - 1):
+        profile[i] = 0.25 * raw[i - 1] + 0.5 * raw[i] + 0.25 * raw[i + 1]
+    return profile, s0
+
+
+@pytest.mark.parametrize("angle", [0.0, 0.4, 1.2, math.pi / 2, 2.5, -0.9])
+def test_profile_and_axis_sigma_on_row_spans_equal_the_pixel_by_pixel_sums(angle: float) -> None:
+    # Rows weighted between zero margins of their own widths, an empty row, zeros and negative weights inside a
+    # span, a -0.0: the row spans' sums must be the per-pixel sums bit for bit (the lean and per-view paths'
+    # results are compared exactly).
+    rng = np.random.default_rng(11)
+    weights = rng.normal(0.6, 0.5, (23, 37)).astype(np.float32)
+    for y in range(23):
+        lo, hi = sorted(rng.integers(0, 38, 2))
+        weights[y, :lo] = 0.0
+        weights[y, hi:] = 0.0
+    weights[5] = 0.0
+    weights[9, 4:30] = 0.7
+    weights[9, 17] = 0.0
+    weights[10, 2:20] = -0.3
+    weights[10, 3] = -0.0
+    c0, c1, v0, v1 = 18.3, 11.1, math.cos(angle), math.sin(angle)
+    profile, s0, sigma = vk._profile_and_axis_sigma(weights, c0, c1, v0, v1, True, 4.0, 0.02)
+    expected, expected_s0 = _reference_profile(weights, c0, c1, v0, v1)
+    assert s0 == expected_s0
+    assert np.array_equal(profile, expected)
+    assert sigma == vk.axis_sigma_of(weights, c0, c1, v0, v1, 4.0, 0.02)
+    alone, alone_s0 = vk.axial_profile_of(weights, c0, c1, v0, v1)
+    assert alone_s0 == s0 and np.array_equal(alone, profile)
