@@ -472,6 +472,21 @@ def dilate_runs(mask, half_widths):  # pragma: no cover - compiled
 
 
 @kernel
+def _nonzero_span(row):  # pragma: no cover - compiled
+    """``lo, hi``: the first index of ``row`` not zero (a NaN counts) and one past the last; ``0, 0`` if none."""
+    w = row.size
+    lo = 0
+    while lo < w and row[lo] == 0:
+        lo += 1
+    if lo == w:
+        return 0, 0
+    hi = w
+    while row[hi - 1] == 0:
+        hi -= 1
+    return lo, hi
+
+
+@kernel
 def _principal(sxx, syy, sxy, n):  # pragma: no cover - compiled
     """Eigenvalues and major unit axis of a scatter (sums of centred products over n), closed form."""
     k = 1.0 / max(n, 1)
@@ -515,11 +530,12 @@ def _with_row(m00, m10, m01, m20, m02, m11, r0, r1, r2, y):  # pragma: no cover 
 @kernel
 def moments(weights):  # pragma: no cover - compiled
     """``m00, m10, m01, mu20, mu02, mu11`` of a float image (cv2.moments' values, double accumulation)."""
-    h, w = weights.shape
+    h = weights.shape[0]
     m00 = m10 = m01 = m20 = m02 = m11 = 0.0
     for y in range(h):
         r0 = r1 = r2 = 0.0
-        for x in range(w):
+        lo, hi = _nonzero_span(weights[y])  # (a zero pixel's sums are zeros: they change no sum)
+        for x in range(lo, hi):
             r0, r1, r2 = _with_pixel(r0, r1, r2, float(weights[y, x]), x)
         m00, m10, m01, m20, m02, m11 = _with_row(m00, m10, m01, m20, m02, m11, r0, r1, r2, y)
     return _central(m00, m10, m01, m20, m02, m11)
@@ -529,14 +545,15 @@ def moments(weights):  # pragma: no cover - compiled
 def moments_and_capped(weights, cap):  # pragma: no cover - compiled
     """:func:`moments` of ``weights`` and of ``np.minimum(weights, np.float32(cap))``, in one pass and without
     the capped copy: the same sums in the same order as the two calls (12 numbers, the weights' first)."""
-    h, w = weights.shape
+    h = weights.shape[0]
     cap32 = np.float32(cap)
     m00 = m10 = m01 = m20 = m02 = m11 = 0.0
     t00 = t10 = t01 = t20 = t02 = t11 = 0.0
     for y in range(h):
         r0 = r1 = r2 = 0.0
         q0 = q1 = q2 = 0.0
-        for x in range(w):
+        lo, hi = _nonzero_span(weights[y])  # (a zero pixel's sums, capped or not, are zeros: they change no sum)
+        for x in range(lo, hi):
             value = weights[y, x]
             r0, r1, r2 = _with_pixel(r0, r1, r2, float(value), x)
             # np.minimum's value (a NaN weight stays NaN)
@@ -1366,21 +1383,6 @@ def axial_profile_of(weights, c0, c1, v0, v1):  # pragma: no cover - compiled
     """The weights' axial profile in 1-px bins with linear interpolation, [1 2 1]/4 smoothed; ``(profile, s0)``."""
     profile, s0, _ = _profile_and_axis_sigma(weights, c0, c1, v0, v1, False, 0.0, 0.0)
     return profile, s0
-
-
-@kernel
-def _nonzero_span(row):  # pragma: no cover - compiled
-    """``lo, hi``: the first index of ``row`` not zero (a NaN counts) and one past the last; ``0, 0`` if none."""
-    w = row.size
-    lo = 0
-    while lo < w and row[lo] == 0:
-        lo += 1
-    if lo == w:
-        return 0, 0
-    hi = w
-    while row[hi - 1] == 0:
-        hi -= 1
-    return lo, hi
 
 
 @kernel
