@@ -472,6 +472,21 @@ def dilate_runs(mask, half_widths):  # pragma: no cover - compiled
 
 
 @kernel
+def _nonzero_span(row):  # pragma: no cover - compiled
+    """``lo, hi``: the first index of ``row`` not zero (a NaN counts) and one past the last; ``0, 0`` if none."""
+    w = row.size
+    lo = 0
+    while lo < w and row[lo] == 0:
+        lo += 1
+    if lo == w:
+        return 0, 0
+    hi = w
+    while row[hi - 1] == 0:
+        hi -= 1
+    return lo, hi
+
+
+@kernel
 def _principal(sxx, syy, sxy, n):  # pragma: no cover - compiled
     """Eigenvalues and major unit axis of a scatter (sums of centred products over n), closed form."""
     k = 1.0 / max(n, 1)
@@ -515,11 +530,12 @@ def _with_row(m00, m10, m01, m20, m02, m11, r0, r1, r2, y):  # pragma: no cover 
 @kernel
 def moments(weights):  # pragma: no cover - compiled
     """``m00, m10, m01, mu20, mu02, mu11`` of a float image (cv2.moments' values, double accumulation)."""
-    h, w = weights.shape
+    h = weights.shape[0]
     m00 = m10 = m01 = m20 = m02 = m11 = 0.0
     for y in range(h):
         r0 = r1 = r2 = 0.0
-        for x in range(w):
+        lo, hi = _nonzero_span(weights[y])  # (a zero pixel's sums are zeros: they change no sum)
+        for x in range(lo, hi):
             r0, r1, r2 = _with_pixel(r0, r1, r2, float(weights[y, x]), x)
         m00, m10, m01, m20, m02, m11 = _with_row(m00, m10, m01, m20, m02, m11, r0, r1, r2, y)
     return _central(m00, m10, m01, m20, m02, m11)
@@ -529,14 +545,15 @@ def moments(weights):  # pragma: no cover - compiled
 def moments_and_capped(weights, cap):  # pragma: no cover - compiled
     """:func:`moments` of ``weights`` and of ``np.minimum(weights, np.float32(cap))``, in one pass and without
     the capped copy: the same sums in the same order as the two calls (12 numbers, the weights' first)."""
-    h, w = weights.shape
+    h = weights.shape[0]
     cap32 = np.float32(cap)
     m00 = m10 = m01 = m20 = m02 = m11 = 0.0
     t00 = t10 = t01 = t20 = t02 = t11 = 0.0
     for y in range(h):
         r0 = r1 = r2 = 0.0
         q0 = q1 = q2 = 0.0
-        for x in range(w):
+        lo, hi = _nonzero_span(weights[y])  # (a zero pixel's sums, capped or not, are zeros: they change no sum)
+        for x in range(lo, hi):
             value = weights[y, x]
             r0, r1, r2 = _with_pixel(r0, r1, r2, float(value), x)
             # np.minimum's value (a NaN weight stays NaN)
@@ -1402,12 +1419,21 @@ def axial_profile_of(weights, c0, c1, v0, v1):  # pragma: no cover - compiled
 @kernel
 def _profile_and_axis_sigma(weights, c0, c1, v0, v1, with_sigma, spread, pixel_sigma):  # pragma: no cover
     """:func:`axial_profile_of`'s ``(profile, s0)`` and, if ``with_sigma``, :func:`axis_sigma_of` (else NaN)
-    in the profile's pass over the weights: each pixel's terms and each sum's order as in the two kernels."""
+    in the profile's pass over the weights: each pixel's terms and each sum's order as in the two kernels.
+
+    (Issue 8: each row is taken between its first and last weighted pixel only, its terms computed for the
+    whole span first in loops the compiler vectorises, the sums then added in the pixels' order. A zero
+    weight's bin terms are zeros, which leave every bin's sum as it is, and its axis term is made zero.)"""
     h, w = weights.shape
+    spans = np.empty(2 * h, dtype=np.int64)
     s_min, s_max, i_max = np.inf, -np.inf, -1
     for y in range(h):
-        for x in range(w):
-            if weights[y, x] != 0:
+        lo, hi = _nonzero_span(weights[y])
+        spans[2 * y], spans[2 * y + 1] = lo, hi
+        if hi > lo:
+            # s is monotonic in x along a row (each rounded operation is), so a row's weighted pixels have
+            # their least and largest s at its span's ends.
+            for x in (lo, hi - 1):
                 s = (x - c0) * v0 + (y - c1) * v1
                 s_min = min(s_min, s)
                 s_max = max(s_max, s)
@@ -1417,25 +1443,56 @@ def _profile_and_axis_sigma(weights, c0, c1, v0, v1, with_sigma, spread, pixel_s
         # and truncation (s - s0 >= 2) are monotonic, so one pass over the weights gives both ends.
         i_max = int(s_max - s0)
     n = i_max + 4
-    lower = np.zeros(n)
-    upper = np.zeros(n)
+    bins = np.zeros(2 * n)
+    lower, upper = bins[:n], bins[n:]
+    terms = np.empty(3 * w)
+    part_lo, part_up, axis_terms = terms[:w], terms[w:2 * w], terms[2 * w:]
+    index = np.empty(w, dtype=np.int64)
+    gains = np.empty(w, dtype=np.float32)
+    f0, f12 = np.float32(0.0), np.float32(12.0)
     total, acc = 0.0, 0.0
     for y in range(h):
-        for x in range(w):
-            value = weights[y, x]
-            wt = float(value)
-            if wt != 0:
-                u = ((x - c0) * v0 + (y - c1) * v1) - s0
-                i = int(u)
-                frac = u - i
-                lower[i] += wt * (1.0 - frac)
-                upper[i + 1] += wt * frac
-            if with_sigma:
-                total, acc = _axis_sigma_terms(value, x, y, c0, c1, v0, v1, total, acc)
-    raw = lower + upper
-    profile = raw.copy()
+        lo, hi = spans[2 * y], spans[2 * y + 1]
+        if hi <= lo:
+            continue
+        m = np.uint64(hi - lo)
+        row = weights[y, lo:hi]
+        dy = y - c1
+        ty = dy * v1
+        for i in range(m):
+            dx = float(lo + np.int64(i)) - c0
+            u = (dx * v0 + ty) - s0
+            k = int(u)
+            frac = u - k
+            wt = float(row[i])
+            index[i] = k
+            part_lo[i] = wt * (1.0 - frac)
+            part_up[i] = wt * frac
+        if with_sigma:
+            for i in range(m):
+                gains[i] = np.exp(min(max(row[i], f0), f12))
+            for i in range(m):
+                dx = float(lo + np.int64(i)) - c0
+                s = dx * v0 + dy * v1
+                t = -dx * v1 + dy * v0
+                term = (s * t) ** 2 * gains[i]
+                axis_terms[i] = term if row[i] != 0 else 0.0
+            for i in range(m):  # (four chains of additions in one loop: they overlap)
+                total += row[i]
+                acc += axis_terms[i]
+                k = index[i]
+                lower[k] += part_lo[i]
+                upper[k + 1] += part_up[i]
+        else:
+            for i in range(m):
+                k = index[i]
+                lower[k] += part_lo[i]
+                upper[k + 1] += part_up[i]
+    profile = np.empty(n)
+    profile[0], profile[n - 1] = lower[0] + upper[0], lower[n - 1] + upper[n - 1]
     for i in range(1, n - 1):
-        profile[i] = 0.25 * raw[i - 1] + 0.5 * raw[i] + 0.25 * raw[i + 1]
+        profile[i] = (0.25 * (lower[i - 1] + upper[i - 1]) + 0.5 * (lower[i] + upper[i])
+                      + 0.25 * (lower[i + 1] + upper[i + 1]))
     return profile, s0, _axis_sigma_from(total, acc, spread, pixel_sigma) if with_sigma else np.nan
 
 

@@ -344,3 +344,80 @@ def test_the_background_fill_interpolates_each_line_of_the_support_and_needs_no_
     fresh = np.full((hh, ww), np.nan, dtype=np.float32)
     vk._fill_values(smooth, 0, 0, hh, ww, support, sy0, sy1, sx0, sx1, 3, 5, transpose, fresh)
     assert np.array_equal(got, fresh, equal_nan=True)
+
+
+def _reference_profile(weights: np.ndarray, c0: float, c1: float, v0: float, v1: float) -> tuple[np.ndarray, float]:
+    """The axial profile pixel by pixel in row-major order (the kernel's arithmetic before issue 8's spans)."""
+    h, w = weights.shape
+    s = [(x - c0) * v0 + (y - c1) * v1 for y in range(h) for x in range(w) if weights[y, x] != 0]
+    s0 = math.floor(min(s)) - 2.0
+    n = int(max(s) - s0) + 4
+    lower, upper = np.zeros(n), np.zeros(n)
+    for y in range(h):
+        for x in range(w):
+            wt = float(weights[y, x])
+            if wt != 0:
+                u = ((x - c0) * v0 + (y - c1) * v1) - s0
+                i = int(u)
+                lower[i] += wt * (1.0 - (u - i))
+                upper[i + 1] += wt * (u - i)
+    raw = lower + upper
+    profile = raw.copy()
+    for i in range(1, n - 1):
+        profile[i] = 0.25 * raw[i - 1] + 0.5 * raw[i] + 0.25 * raw[i + 1]
+    return profile, s0
+
+
+@pytest.mark.parametrize("angle", [0.0, 0.4, 1.2, math.pi / 2, 2.5, -0.9])
+def test_profile_and_axis_sigma_on_row_spans_equal_the_pixel_by_pixel_sums(angle: float) -> None:
+    # Rows weighted between zero margins of their own widths, an empty row, zeros and negative weights inside a
+    # span, a -0.0: the row spans' sums must be the per-pixel sums bit for bit (the lean and per-view paths'
+    # results are compared exactly).
+    rng = np.random.default_rng(11)
+    weights = rng.normal(0.6, 0.5, (23, 37)).astype(np.float32)
+    for y in range(23):
+        lo, hi = sorted(rng.integers(0, 38, 2))
+        weights[y, :lo] = 0.0
+        weights[y, hi:] = 0.0
+    weights[5] = 0.0
+    weights[9, 4:30] = 0.7
+    weights[9, 17] = 0.0
+    weights[10, 2:20] = -0.3
+    weights[10, 3] = -0.0
+    c0, c1, v0, v1 = 18.3, 11.1, math.cos(angle), math.sin(angle)
+    profile, s0, sigma = vk._profile_and_axis_sigma(weights, c0, c1, v0, v1, True, 4.0, 0.02)
+    expected, expected_s0 = _reference_profile(weights, c0, c1, v0, v1)
+    assert s0 == expected_s0
+    assert np.array_equal(profile, expected)
+    assert sigma == vk.axis_sigma_of(weights, c0, c1, v0, v1, 4.0, 0.02)
+    alone, alone_s0 = vk.axial_profile_of(weights, c0, c1, v0, v1)
+    assert alone_s0 == s0 and np.array_equal(alone, profile)
+
+
+def test_moments_on_row_spans_equal_the_pixel_by_pixel_sums() -> None:
+    # The rows' sums taken between each row's first and last weighted pixel must be the per-pixel sums bit for
+    # bit, capped or not (the weighted moments feed the lean pass's and the per-view path's identical results).
+    rng = np.random.default_rng(12)
+    weights = rng.normal(0.6, 0.5, (19, 31)).astype(np.float32)
+    for y in range(19):
+        lo, hi = sorted(rng.integers(0, 32, 2))
+        weights[y, :lo] = 0.0
+        weights[y, hi:] = -0.0 if y % 2 else 0.0
+    weights[4] = 0.0
+    weights[7, 5:25] = -0.2
+    weights[7, 9] = 0.0
+    cap = np.float32(0.8)
+    sums = [0.0] * 12
+    for y in range(19):
+        r = [0.0] * 6
+        for x in range(31):
+            value = weights[y, x]
+            for k, v in enumerate((float(value), float(cap if cap < value else value))):
+                r[3 * k], r[3 * k + 1], r[3 * k + 2] = r[3 * k] + v, r[3 * k + 1] + v * x, r[3 * k + 2] + v * x * x
+        for k in range(2):
+            r0, r1, r2 = r[3 * k:3 * k + 3]
+            s = sums[6 * k:6 * k + 6]
+            sums[6 * k:6 * k + 6] = [s[0] + r0, s[1] + r1, s[2] + r0 * y, s[3] + r2, s[4] + r0 * y * y, s[5] + r1 * y]
+    expected = vk._central(*sums[:6]) + vk._central(*sums[6:])
+    assert vk.moments_and_capped(weights, float(cap)) == expected
+    assert vk.moments(weights) == expected[:6]
