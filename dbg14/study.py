@@ -51,5 +51,6 @@ for seed in seeds:
                 err = math.degrees(math.acos(min(1.0, abs(float(a @ f.axis)))))
                 rows.append(dict(seed=seed, robot=rid, pose=k, view=name, elong=e, sigma=math.degrees(f.axis_sigma_rad or 0),
                                  err2d=err, len_px=float(np.linalg.norm(hp - tp))))
+    json.dump(rows, open(path, 'w'))
 print('frames done in', time.time() - t0, file=sys.stderr)
 json.dump(rows, open(path, 'w'))
