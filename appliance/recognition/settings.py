@@ -127,12 +127,6 @@ class RecognitionSettings(StrictModel):
     #: A frame whose axis is certain only with the plane of a view elongated less than this stays flagged as
     #: it was at ``min_view_elongation`` 1.3 (reconstruction._flagged_end_on).
     end_on_flag_elongation: float = Field(1.3, ge=1)
-    #: A view elongated less than ``end_on_flag_elongation`` gives its axis plane only where its own axis sigma
-    #: is at most this (deg; otherwise none, as below ``min_view_elongation``): robot 4's near-round views' 2D
-    #: axes (a 3 x 1.5 mm body) are off by several degrees with sigmas of 3-20 deg, and their planes turned
-    #: flagged frames that the tips had right (standing 20261121 pose 5 1.8 -> 9.0 deg at 1.15), where robot
-    #: 6's are within ~1 deg with sigmas below 1 deg (benchmarks/axis_round14.md).
-    end_on_plane_max_sigma_deg: float = Field(1.5, gt=0)
     #: A frame whose 3D axis is more uncertain than this (from the image noise) is flagged ambiguous: a
     #: third of the 5 deg an unflagged frame may be off. The 3D sigma is calibrated (robot 4, dev seeds 1-20:
     #: RMS error / sigma 0.9-1.1 in every sigma range up to 2.5 deg), so an unflagged frame is off by 5 deg
