@@ -129,13 +129,24 @@ class RecognitionSettings(StrictModel):
     #: A frame whose axis is certain only with the plane of a view elongated less than this stays flagged as
     #: it was at ``min_view_elongation`` 1.3 (reconstruction._flagged_end_on).
     end_on_flag_elongation: float = Field(1.3, ge=1)
-    #: A robot shorter than this times its diameter gets no axis plane from a view elongated less than
-    #: ``end_on_flag_elongation`` (the tracker raises ``min_view_elongation`` to it: tracker._for_body). Such a
-    #: stubby body (robot 4, 3 x 1.5 mm) is elongated that little in views far from end-on, where a 2D axis
-    #: error turns the plane fully, and its few-pixel image's axis is worse than its sigma: at 1.15 its
-    #: flagged frames went 1.8 -> 9.0 deg (standing 20261121 pose 5), 0.45 -> 5.6 (4242 pose 11), 3.7 -> 5.7
-    #: (2645751 pose 3), where robot 6's band views are nearly end-on and their planes right.
+    #: A robot shorter than this times its diameter (robot 4, 3 x 1.5 mm) takes the axis plane of a view elongated
+    #: less than ``end_on_flag_elongation`` only where that view's own axis sigma is at most
+    #: ``stubby_end_on_max_sigma_deg`` (the tracker sets ``end_on_plane_max_sigma_deg`` to it: tracker._for_body).
+    #: Such a stubby body is that little elongated in views far from end-on, where a 2D axis error turns the
+    #: plane fully, and its few-pixel image's axis is worse than its sigma: at 1.15 its flagged frames went
+    #: 1.8 -> 9.0 deg (standing 20261121 pose 5, view q's sigma 7.1 deg), 0.45 -> 5.6 (4242 pose 11, 2.8 and 3.0),
+    #: 3.7 -> 5.7 (2645751 pose 3, 23 deg). Robot 6's band views are nearly end-on and their planes right even
+    #: with a large sigma (the plane's weight scales with the sine of the ray-axis angle).
     end_on_plane_min_aspect: float = Field(3.0, gt=0)
+    #: (see ``end_on_plane_min_aspect``) Dev seeds 1-12 cold, robot 4's frames it changed (6, all flagged): axis
+    #: RMS 1.66 -> 1.03 deg; at 2.0 (10 frames) 1.52 -> 1.17; no plane at all from the band (21 frames) 1.39 ->
+    #: 1.64 (benchmarks/axis_round14.md).
+    stubby_end_on_max_sigma_deg: float = Field(2.5, gt=0)
+    #: A view elongated less than ``end_on_flag_elongation`` gives its axis plane only where its own axis sigma is
+    #: at most this (deg); None: wherever it is elongated by ``min_view_elongation``. Set by the tracker for a
+    #: stubby body (``end_on_plane_min_aspect``).
+    end_on_plane_max_sigma_deg: float | None = None
+
     #: A frame whose 3D axis is more uncertain than this (from the image noise) is flagged ambiguous: a
     #: third of the 5 deg an unflagged frame may be off. The 3D sigma is calibrated (robot 4, dev seeds 1-20:
     #: RMS error / sigma 0.9-1.1 in every sigma range up to 2.5 deg), so an unflagged frame is off by 5 deg

@@ -8,6 +8,7 @@ long as wide, its head 17 px off along its axis, as the study frame's was; view 
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 
@@ -71,18 +72,25 @@ def test_a_view_elongated_1_14_times_gives_its_plane(calibration: Calibration) -
     assert _angle_deg(old.direction, truth) > 2.0
 
 
-def test_a_stubby_body_gets_no_plane_from_a_nearly_round_view(calibration: Calibration) -> None:
-    """Robot 4 (3 x 1.5 mm, shorter than ``end_on_plane_min_aspect`` diameters): its tracker takes no axis plane
-    from a view elongated less than ``end_on_flag_elongation`` (its near-round views are not end-on and their
-    2D axes are off by more than their sigmas); robot 6's tracker does."""
-    stubby = PostureTracker(calibration, RecognitionSettings(), body=load_robots()[4])
-    assert stubby.settings.min_view_elongation == stubby.settings.end_on_flag_elongation
-    long_body = PostureTracker(calibration, RecognitionSettings(), body=load_robots()[6])
-    assert long_body.settings.min_view_elongation == RecognitionSettings().min_view_elongation
-    # The model-free tracker (no body prior) keeps the settings as given.
+def test_a_stubby_body_takes_a_nearly_round_views_plane_only_with_a_small_sigma(calibration: Calibration) -> None:
+    """Robot 4 (3 x 1.5 mm, shorter than ``end_on_plane_min_aspect`` diameters): its tracker takes the axis plane
+    of a view elongated less than ``end_on_flag_elongation`` only where the view's axis sigma is at most
+    ``stubby_end_on_max_sigma_deg`` (its near-round views' 2D axes are off by more than their sigmas); robot 6's
+    tracker and the model-free one take it whatever its sigma."""
+    settings = RecognitionSettings()
+    stubby = PostureTracker(calibration, settings, body=load_robots()[4])
+    assert stubby.settings.end_on_plane_max_sigma_deg == settings.stubby_end_on_max_sigma_deg
+    long_body = PostureTracker(calibration, settings, body=load_robots()[6])
+    assert long_body.settings.end_on_plane_max_sigma_deg is None
     free = PostureTracker(calibration, RecognitionSettings(body_prior=False), body=load_robots()[4])
-    assert free.settings.min_view_elongation == RecognitionSettings().min_view_elongation
+    assert free.settings.end_on_plane_max_sigma_deg is None
     truth, feats = _frame(calibration)
+    noisy = {**feats, "p": replace(feats["p"], axis_sigma_rad=math.radians(5.0))}
+    for tracker, taken in ((stubby, False), (long_body, True)):
+        rec = reconstruct(calibration, tracker.F, noisy["p"], noisy["q"], tracker.settings, None)
+        assert rec.direction is not None
+        # With view p's plane the direction is within a degree; without it, the tips' (far off).
+        assert (_angle_deg(rec.direction, truth) < 1.0) == taken
+    # A view whose sigma is small gives its plane to the stubby body too.
     rec = reconstruct(calibration, stubby.F, feats["p"], feats["q"], stubby.settings, None)
-    assert rec.direction is not None
-    assert _angle_deg(rec.direction, truth) > 2.0   # the tips' direction: view p's plane was not taken
+    assert rec.direction is not None and _angle_deg(rec.direction, truth) < 1.0
