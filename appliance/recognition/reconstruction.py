@@ -151,8 +151,8 @@ def _reconstruct_weighted(calibration: Calibration, feat_p: Features2D, feat_q: 
     s = settings
     G = calibration.packed
     out = np.empty(kernels.OUT_SIZE)
-    sigma_p = feat_p.axis_sigma_rad if feat_p.axis_sigma_rad is not None else math.nan
-    sigma_q = feat_q.axis_sigma_rad if feat_q.axis_sigma_rad is not None else math.nan
+    sigma_p = _plane_sigma(feat_p, s)
+    sigma_q = _plane_sigma(feat_q, s)
     head_p = feat_p.head_index if feat_p.head_index is not None else -1
     head_q = feat_q.head_index if feat_q.head_index is not None else -1
     if previous is not None:
@@ -165,7 +165,34 @@ def _reconstruct_weighted(calibration: Calibration, feat_p: Features2D, feat_q: 
         sigma_q, head_q, prev0, prev1, prev2, previous is not None, s.ambiguity_px, s.min_plane_angle_deg,
         s.max_axis_disagreement_deg, s.min_view_elongation, s.axis_floor_rad, s.tip_sigma_px, s.tip_rim_fraction,
         out)
-    return reconstruct_from_front(calibration, feat_p, feat_q, settings, previous, status, out)
+    return _finish_front(calibration, feat_p, feat_q, settings, previous, status, out)
+
+
+#: The axis-angle sigma (rad) the compiled front takes for a view that gives no axis plane (its own for a view
+#: elongated less than ``min_view_elongation``).
+_NO_PLANE_SIGMA_RAD = 1.0
+
+
+def _in_end_on_band(feat: Features2D, s: RecognitionSettings) -> bool:
+    """Whether the view's image is elongated by ``min_view_elongation`` to ``end_on_flag_elongation``."""
+    l1, l2 = feat.eigenvalues
+    return s.min_view_elongation * l2 <= l1 < s.end_on_flag_elongation * l2
+
+
+def _plane_withheld(feat: Features2D, s: RecognitionSettings) -> bool:
+    """Whether a view in the end-on band gives no axis plane: its own axis sigma is unknown or above
+    ``settings.end_on_plane_max_sigma_deg`` where that is set (a stubby body's, robot 4's: its near-round views'
+    axes are off by more than their sigmas)."""
+    limit = s.end_on_plane_max_sigma_deg
+    return limit is not None and _in_end_on_band(feat, s) and (
+        feat.axis_sigma_rad is None or math.degrees(feat.axis_sigma_rad) > limit)
+
+
+def _plane_sigma(feat: Features2D, s: RecognitionSettings) -> float:
+    """The view's axis-angle sigma for the compiled front (NaN if unknown; a withheld plane's as none)."""
+    if _plane_withheld(feat, s):
+        return _NO_PLANE_SIGMA_RAD
+    return feat.axis_sigma_rad if feat.axis_sigma_rad is not None else math.nan
 
 
 def _flagged_end_on(calibration: Calibration, feat_p: Features2D, feat_q: Features2D, s: RecognitionSettings,
@@ -176,8 +203,7 @@ def _flagged_end_on(calibration: Calibration, feat_p: Features2D, feat_q: Featur
     (robot 6: 0.03 deg) and its plane is taken, but the frame keeps the flag it had without it, with the reason
     appended (on the dev seeds robot 4's frames it unflagged were 0.2-1.7 deg off: median 0.544 -> 0.568 on
     seed 7)."""
-    band = [name for name, f in (("p", feat_p), ("q", feat_q))
-            if s.min_view_elongation * f.eigenvalues[1] <= f.eigenvalues[0] < s.end_on_flag_elongation * f.eigenvalues[1]]
+    band = [name for name, f in (("p", feat_p), ("q", feat_q)) if _in_end_on_band(f, s) and not _plane_withheld(f, s)]
     if not band:
         return False
     strict = _reconstruct_weighted(calibration, feat_p, feat_q,
@@ -196,7 +222,17 @@ def reconstruct_from_front(calibration: Calibration, feat_p: Features2D, feat_q:
                            out: np.ndarray) -> Reconstruction:
     """The default method's decisions on what :func:`.reconstruction_kernels.weighted_front` returned
     (``status``) and wrote (``out``, its layout) for these features: the tracker's steady state runs
-    the front inside its one compiled call per pair (:mod:`.steady_kernels`) and finishes here."""
+    the front inside its one compiled call per pair (:mod:`.steady_kernels`) and finishes here. That front
+    takes every view's plane from ``min_view_elongation`` up; where a view's is withheld (:func:`_plane_withheld`)
+    the front is made again without it (rare: a view seen nearly end-on)."""
+    if _plane_withheld(feat_p, settings) or _plane_withheld(feat_q, settings):
+        return _reconstruct_weighted(calibration, feat_p, feat_q, settings, previous)
+    return _finish_front(calibration, feat_p, feat_q, settings, previous, status, out)
+
+
+def _finish_front(calibration: Calibration, feat_p: Features2D, feat_q: Features2D, settings: RecognitionSettings,
+                  previous: np.ndarray | None, status: int, out: np.ndarray) -> Reconstruction:
+    """:func:`reconstruct_from_front` on a front that took the views' planes as :func:`_plane_sigma` says."""
     s = settings
     if status == kernels.STATUS_PLANE_P or status == kernels.STATUS_PLANE_Q:
         name = "p" if status == kernels.STATUS_PLANE_P else "q"

@@ -123,10 +123,30 @@ class RecognitionSettings(StrictModel):
     #: 5235360 pose 8, view p at 1.19: 6.6 deg off, tips 2.4 mm; seed 5266249 pose 23 at 1.29: 5.7 deg) where
     #: that view's 2D axis was within 0.03 deg; at 1.15 they are 0.4 deg off. Dev seeds 1-12 cold, 1-4 tracked
     #: and the standing seeds: benchmarks/axis_round13.md.
-    min_view_elongation: float = Field(1.15, ge=1)
+    #: Round 14: 1.15 -> 1.1 (seed 2645751 robot 6 pose 3, view p at 1.14: 6.6 deg off, tips 2.4 mm; 0.6 deg and
+    #: 0.18 mm with its plane; benchmarks/axis_round14.md).
+    min_view_elongation: float = Field(1.1, ge=1)
     #: A frame whose axis is certain only with the plane of a view elongated less than this stays flagged as
     #: it was at ``min_view_elongation`` 1.3 (reconstruction._flagged_end_on).
     end_on_flag_elongation: float = Field(1.3, ge=1)
+    #: A robot shorter than this times its diameter (robot 4, 3 x 1.5 mm) takes the axis plane of a view elongated
+    #: less than ``end_on_flag_elongation`` only where that view's own axis sigma is at most
+    #: ``stubby_end_on_max_sigma_deg`` (the tracker sets ``end_on_plane_max_sigma_deg`` to it: tracker._for_body).
+    #: Such a stubby body is that little elongated in views far from end-on, where a 2D axis error turns the
+    #: plane fully, and its few-pixel image's axis is worse than its sigma: at 1.15 its flagged frames went
+    #: 1.8 -> 9.0 deg (standing 20261121 pose 5, view q's sigma 7.1 deg), 0.45 -> 5.6 (4242 pose 11, 2.8 and 3.0),
+    #: 3.7 -> 5.7 (2645751 pose 3, 23 deg). Robot 6's band views are nearly end-on and their planes right even
+    #: with a large sigma (the plane's weight scales with the sine of the ray-axis angle).
+    end_on_plane_min_aspect: float = Field(3.0, gt=0)
+    #: (see ``end_on_plane_min_aspect``) Dev seeds 1-12 cold, robot 4's frames it changed (6, all flagged): axis
+    #: RMS 1.66 -> 1.03 deg; at 2.0 (10 frames) 1.52 -> 1.17; no plane at all from the band (21 frames) 1.39 ->
+    #: 1.64 (benchmarks/axis_round14.md).
+    stubby_end_on_max_sigma_deg: float = Field(2.5, gt=0)
+    #: A view elongated less than ``end_on_flag_elongation`` gives its axis plane only where its own axis sigma is
+    #: at most this (deg); None: wherever it is elongated by ``min_view_elongation``. Set by the tracker for a
+    #: stubby body (``end_on_plane_min_aspect``).
+    end_on_plane_max_sigma_deg: float | None = None
+
     #: A frame whose 3D axis is more uncertain than this (from the image noise) is flagged ambiguous: a
     #: third of the 5 deg an unflagged frame may be off. The 3D sigma is calibrated (robot 4, dev seeds 1-20:
     #: RMS error / sigma 0.9-1.1 in every sigma range up to 2.5 deg), so an unflagged frame is off by 5 deg

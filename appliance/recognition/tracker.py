@@ -145,15 +145,24 @@ def head_claim_confidence(views: dict[str, tuple[Features2D, float, int | None]]
 def _for_body(settings: RecognitionSettings, body: BodyModel | object | None) -> RecognitionSettings:
     """The settings the tracker of ``body`` works with: a robot at least
     ``settings.along_structure_min_diameter_mm`` wide has its background interpolated along structure
-    (``background_along_structure``; why: that setting's comment). Without a known body, with the body
-    prior off (the tracker given the body is then the model-free one) and for the paper's estimator (a
-    reference, kept as it was), as given."""
-    diameter = getattr(body, "diameter_mm", None)
-    if (diameter is None or settings.background_along_structure or settings.estimator == "paper"
-            or not settings.body_prior
-            or not float(diameter) >= settings.along_structure_min_diameter_mm):
+    (``background_along_structure``; why: that setting's comment); a robot shorter than
+    ``settings.end_on_plane_min_aspect`` times its diameter takes the axis plane of a view elongated less than
+    ``settings.end_on_flag_elongation`` only where that view's axis sigma is at most
+    ``settings.stubby_end_on_max_sigma_deg`` (``end_on_plane_max_sigma_deg``; why: that setting's comment).
+    Without a known body, with the body prior off (the tracker given the body is then the model-free one) and
+    for the paper's estimator (a reference, kept as it was), as given."""
+    if body is None or settings.estimator == "paper" or not settings.body_prior:
         return settings
-    return settings.model_copy(update={"background_along_structure": True})
+    update: dict[str, object] = {}
+    diameter = getattr(body, "diameter_mm", None)
+    if (diameter is not None and not settings.background_along_structure
+            and float(diameter) >= settings.along_structure_min_diameter_mm):
+        update["background_along_structure"] = True
+    length = getattr(body, "length_mm", None)
+    if (diameter is not None and length is not None and float(length) < settings.end_on_plane_min_aspect * float(diameter)
+            and settings.end_on_plane_max_sigma_deg is None):
+        update["end_on_plane_max_sigma_deg"] = settings.stubby_end_on_max_sigma_deg
+    return settings.model_copy(update=update) if update else settings
 
 
 class PostureTracker:

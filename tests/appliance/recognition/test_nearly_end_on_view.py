@@ -8,6 +8,7 @@ long as wide, its head 17 px off along its axis, as the study frame's was; view 
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 
@@ -23,7 +24,7 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     return math.degrees(math.acos(min(1.0, abs(float(a @ b)) / float(np.linalg.norm(a) * np.linalg.norm(b)))))
 
 
-def _frame(calibration: Calibration) -> tuple[np.ndarray, dict[str, Features2D]]:
+def _frame(calibration: Calibration, end_on: tuple[float, float] = (36.0, 30.0)) -> tuple[np.ndarray, dict[str, Features2D]]:
     body = BodyModel.of(load_robots()[6])
     c = np.array([1.0, 2.0, -1.0])
     ray = c - calibration.p.source_mm
@@ -35,7 +36,7 @@ def _frame(calibration: Calibration) -> tuple[np.ndarray, dict[str, Features2D]]
     tail = c - body.centroid_from_tail_mm * truth
     head = tail + body.length_mm * truth
     feats = {}
-    for name, eigenvalues, tip_error in (("p", (36.0, 30.0), 17.0), ("q", (900.0, 36.0), 0.0)):
+    for name, eigenvalues, tip_error in (("p", end_on, 17.0), ("q", (900.0, 36.0), 0.0)):
         uv_c, uv_h, uv_t = calibration.views[name].project(np.vstack([c, head, tail]))
         axis = (uv_h - uv_t) / np.linalg.norm(uv_h - uv_t)
         tips = np.array([uv_h + tip_error * axis, uv_t])
@@ -56,3 +57,40 @@ def test_a_nearly_end_on_view_gives_its_axis_plane(calibration: Calibration) -> 
     assert old.direction is not None and old.axis_sigma_rad is not None
     assert _angle_deg(old.direction, truth) > 2.0
     assert math.degrees(old.axis_sigma_rad) > 10.0
+
+
+def test_a_view_elongated_1_14_times_gives_its_plane(calibration: Calibration) -> None:
+    """Seed 2645751, robot 6, pose 3: view p's image 1.14 times longer than wide (below round 13's 1.15), the
+    direction from the tips 6.6 deg off with tips 2.4 mm off; with its plane 0.6 deg."""
+    truth, feats = _frame(calibration, end_on=(34.2, 30.0))
+    tracker = PostureTracker(calibration, RecognitionSettings(), body=load_robots()[6])
+    rec = reconstruct(calibration, tracker.F, feats["p"], feats["q"], tracker.settings, None)
+    assert rec.direction is not None
+    assert _angle_deg(rec.direction, truth) < 1.0
+    old = reconstruct(calibration, tracker.F, feats["p"], feats["q"], RecognitionSettings(min_view_elongation=1.15), None)
+    assert old.direction is not None
+    assert _angle_deg(old.direction, truth) > 2.0
+
+
+def test_a_stubby_body_takes_a_nearly_round_views_plane_only_with_a_small_sigma(calibration: Calibration) -> None:
+    """Robot 4 (3 x 1.5 mm, shorter than ``end_on_plane_min_aspect`` diameters): its tracker takes the axis plane
+    of a view elongated less than ``end_on_flag_elongation`` only where the view's axis sigma is at most
+    ``stubby_end_on_max_sigma_deg`` (its near-round views' 2D axes are off by more than their sigmas); robot 6's
+    tracker and the model-free one take it whatever its sigma."""
+    settings = RecognitionSettings()
+    stubby = PostureTracker(calibration, settings, body=load_robots()[4])
+    assert stubby.settings.end_on_plane_max_sigma_deg == settings.stubby_end_on_max_sigma_deg
+    long_body = PostureTracker(calibration, settings, body=load_robots()[6])
+    assert long_body.settings.end_on_plane_max_sigma_deg is None
+    free = PostureTracker(calibration, RecognitionSettings(body_prior=False), body=load_robots()[4])
+    assert free.settings.end_on_plane_max_sigma_deg is None
+    truth, feats = _frame(calibration)
+    noisy = {**feats, "p": replace(feats["p"], axis_sigma_rad=math.radians(5.0))}
+    for tracker, taken in ((stubby, False), (long_body, True)):
+        rec = reconstruct(calibration, tracker.F, noisy["p"], noisy["q"], tracker.settings, None)
+        assert rec.direction is not None
+        # With view p's plane the direction is within a degree; without it, the tips' (far off).
+        assert (_angle_deg(rec.direction, truth) < 1.0) == taken
+    # A view whose sigma is small gives its plane to the stubby body too.
+    rec = reconstruct(calibration, stubby.F, feats["p"], feats["q"], stubby.settings, None)
+    assert rec.direction is not None and _angle_deg(rec.direction, truth) < 1.0
