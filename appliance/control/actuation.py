@@ -98,6 +98,26 @@ def _elliptic_k_e(m: float) -> tuple[float, float]:
 
 
 @kernel
+def _loop_frame_and_axial_field(dx: float, dy: float, dz: float, ax: float, ay: float, az: float, a: float,
+                                c: float) -> tuple[float, float, float, float, float, float, float, float, float,
+                                                   float, float]:
+    """One loop of radius ``a`` (unit axis ``ax, ay, az``, ``c`` = mu0 N / (2 pi) per ampere) seen from a point
+    at ``dx, dy, dz`` (m) from its centre: the radial vector ``rx, ry, rz`` and its length ``rho``, the axial
+    coordinate ``z``, ``alpha2`` and ``beta`` of the Smythe form, the modulus ``m``, K(m), E(m), and the axial
+    field ``bz`` (module docstring). Shared by :func:`_coil_fields` and :func:`_field_and_gradient`."""
+    z = dx * ax + dy * ay + dz * az
+    rx, ry, rz = dx - z * ax, dy - z * ay, dz - z * az
+    rho = math.sqrt(rx * rx + ry * ry + rz * rz)
+    alpha2 = (a - rho) ** 2 + z * z
+    beta2 = (a + rho) ** 2 + z * z
+    beta = math.sqrt(beta2)
+    m = min(max(4.0 * a * rho / beta2, 0.0), 1.0 - 1e-15)
+    k_int, e_int = _elliptic_k_e(m)
+    bz = c / beta * (k_int + (a * a - rho * rho - z * z) / alpha2 * e_int)
+    return rx, ry, rz, rho, z, alpha2, beta, m, k_int, e_int, bz
+
+
+@kernel
 def _coil_fields(centres: FloatArray, axes: FloatArray, radii: FloatArray, turns: FloatArray,
                  owner: NDArray[np.int64], n_coils: int, points_m: FloatArray) -> FloatArray:
     """(P, 3, n_coils): field (T) per ampere of every coil at every point; :func:`loop_field`, loop by loop."""
@@ -106,21 +126,12 @@ def _coil_fields(centres: FloatArray, axes: FloatArray, radii: FloatArray, turns
     c0 = MU0 / (2.0 * math.pi)
     for p in range(n_points):
         for l in range(radii.shape[0]):
-            dx = points_m[p, 0] - centres[l, 0]
-            dy = points_m[p, 1] - centres[l, 1]
-            dz = points_m[p, 2] - centres[l, 2]
             ax, ay, az = axes[l, 0], axes[l, 1], axes[l, 2]
-            z = dx * ax + dy * ay + dz * az
-            rx, ry, rz = dx - z * ax, dy - z * ay, dz - z * az
-            rho = math.sqrt(rx * rx + ry * ry + rz * rz)
             a = radii[l]
-            alpha2 = (a - rho) ** 2 + z * z
-            beta2 = (a + rho) ** 2 + z * z
-            beta = math.sqrt(beta2)
-            m = min(max(4.0 * a * rho / beta2, 0.0), 1.0 - 1e-15)
-            k_int, e_int = _elliptic_k_e(m)
             c = c0 * turns[l]
-            bz = c / beta * (k_int + (a * a - rho * rho - z * z) / alpha2 * e_int)
+            rx, ry, rz, rho, z, alpha2, beta, m, k_int, e_int, bz = _loop_frame_and_axial_field(
+                points_m[p, 0] - centres[l, 0], points_m[p, 1] - centres[l, 1], points_m[p, 2] - centres[l, 2],
+                ax, ay, az, a, c)
             coil = owner[l]
             out[p, 0, coil] += bz * ax
             out[p, 1, coil] += bz * ay
@@ -151,21 +162,11 @@ def _field_and_gradient(centres: FloatArray, axes: FloatArray, radii: FloatArray
     radial = np.empty(3)
     c0 = MU0 / (2.0 * math.pi)
     for l in range(radii.shape[0]):
-        dx = point_m[0] - centres[l, 0]
-        dy = point_m[1] - centres[l, 1]
-        dz = point_m[2] - centres[l, 2]
         ax, ay, az = axes[l, 0], axes[l, 1], axes[l, 2]
-        z = dx * ax + dy * ay + dz * az
-        rx, ry, rz = dx - z * ax, dy - z * ay, dz - z * az
-        rho = math.sqrt(rx * rx + ry * ry + rz * rz)
         a = radii[l]
-        alpha2 = (a - rho) ** 2 + z * z
-        beta2 = (a + rho) ** 2 + z * z
-        beta = math.sqrt(beta2)
-        m = min(max(4.0 * a * rho / beta2, 0.0), 1.0 - 1e-15)
-        k_int, e_int = _elliptic_k_e(m)
         c = c0 * turns[l]
-        bz = c / beta * (k_int + (a * a - rho * rho - z * z) / alpha2 * e_int)
+        rx, ry, rz, rho, z, alpha2, beta, m, k_int, e_int, bz = _loop_frame_and_axial_field(
+            point_m[0] - centres[l, 0], point_m[1] - centres[l, 1], point_m[2] - centres[l, 2], ax, ay, az, a, c)
         coil = owner[l]
         field[0, coil] += bz * ax
         field[1, coil] += bz * ay

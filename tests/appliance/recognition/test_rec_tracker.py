@@ -16,7 +16,7 @@ from appliance.recognition import PostureTracker, RecognitionSettings, detect, l
 from appliance.recognition.body_prior import BodyModel
 from appliance.recognition.features import Features2D
 from appliance.recognition.head_by_body import axial_rows, axial_rows_reference, chi2_of, chi2_of_reference
-from appliance.recognition.reconstruction import reconstruct
+from appliance.recognition.reconstruction import Reconstruction, reconstruct
 from appliance.recognition.tracker import head_claim_confidence
 from appliance.recognition.segmentation import Blob, Roi
 from drivers.loopback.xray_render import (
@@ -321,6 +321,18 @@ def test_head_claim_confidence_counts_both_views_and_is_lowered_by_clutter() -> 
     assert against == pytest.approx(clean - 2.0)
 
 
+def _assert_head_claim_withheld(rec: Reconstruction, first: Reconstruction, withheld: bool, reason: str) -> None:
+    """``rec`` (the doubt rule applied to ``first``) is ``first`` itself, or, when ``withheld``, ``first`` with
+    the head unclaimed in every view, the same tips and direction, and ``reason`` among its reasons."""
+    if not withheld:
+        assert rec is first
+        return
+    assert not rec.head_identified
+    assert all(feat.head_index is None for feat in rec.view_features.values())
+    assert np.array_equal(rec.tips, first.tips) and np.array_equal(rec.direction, first.direction)
+    assert any(reason in line for line in rec.reasons)
+
+
 @pytest.mark.parametrize("clutter_p, ramps_p, ramps_q, withheld", [
     (0.3, (8.0, 5.0), (2.7, 3.9), True),     # weak, over a vessel, the clean view leaning the other way
     (0.3, (20.0, 2.5), (3.0, 3.2), False),   # a clear cone and step over the vessel, the other view level
@@ -338,14 +350,8 @@ def test_a_weak_head_claim_by_one_cluttered_view_is_withheld(
     blobs = {"p": _blob(7.0, clutter_p), "q": _blob(7.0, 0.0)}
     first = reconstruct(calibration, tracker.F, feats["p"], feats["q"], tracker.settings)
     assert first.head_identified
-    rec = tracker._head_in_doubt(first, blobs, feats)
-    if not withheld:
-        assert rec is first
-        return
-    assert not rec.head_identified
-    assert all(feat.head_index is None for feat in rec.view_features.values())
-    assert np.array_equal(rec.tips, first.tips) and np.array_equal(rec.direction, first.direction)
-    assert any("the head is not claimed: only view p" in reason for reason in rec.reasons)
+    _assert_head_claim_withheld(tracker._head_in_doubt(first, blobs, feats), first, withheld,
+                                "the head is not claimed: only view p")
 
 
 def _body_features(calibration: Calibration, centre: np.ndarray, direction: np.ndarray, body: BodyModel,
@@ -592,11 +598,5 @@ def test_a_claim_by_one_cluttered_view_whose_ends_are_not_the_body_s_length_apar
     blobs = {"p": _blob(7.0, 0.3), "q": _blob(7.0, 0.0)}
     first = reconstruct(calibration, tracker.F, feats["p"], feats["q"], tracker.settings)
     assert first.head_identified and first.length_mm == pytest.approx(length_mm, rel=1e-3)
-    rec = tracker._head_in_doubt(first, blobs, feats)
-    if not withheld:
-        assert rec is first
-        return
-    assert not rec.head_identified
-    assert all(feat.head_index is None for feat in rec.view_features.values())
-    assert np.array_equal(rec.tips, first.tips) and np.array_equal(rec.direction, first.direction)
-    assert any("not the body's 19 mm" in reason for reason in rec.reasons)
+    _assert_head_claim_withheld(tracker._head_in_doubt(first, blobs, feats), first, withheld,
+                                "not the body's 19 mm")
