@@ -27,6 +27,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from appliance.config_io import read_yaml
+from appliance.core_placement import give_lab_its_own_core
 from appliance.errors import ConfigError
 from appliance.geometry import Calibration, View
 from appliance.robots import RobotSpec
@@ -283,6 +284,12 @@ def _open_simulation(session: Session, robot: RobotSpec, coils: Any, stack: cont
                          renderer=renderer, substep_s=sim.substep_ms / 1000.0,
                          ots={"link": ots_device.link, "seed": sim.seed} if ots_device.kind == "loopback" else None)
         stack.callback(lab.close)
+        if sim.lab_own_core:
+            placement = give_lab_its_own_core(lab.process.pid)
+            if placement is not None:
+                stack.callback(placement.restore)
+                log.info("simulated lab on core %d, the appliance on cores %s", placement.lab_core,
+                         sorted(placement.host_cores))
         amp_url, ots_url = lab.amplifier_url, lab.ots_url
     else:
         from drivers.loopback.amplifier_fake import FakeAmplifier

@@ -31,8 +31,10 @@ thread of this process from the pair formed to the write (the readings inside th
 CPU clocks, ~1 us each, by the reader that forms the pair before it wakes the loop, and the lab child's CPU
 clock at the hand-over; ``--record DIR`` records the session as ``appliance sim`` does).
 
-    .venv/bin/python benchmarks/sim_latency.py [--seconds 20] [--in-process] [--stages [--record DIR]]
+    .venv/bin/python benchmarks/sim_latency.py [--seconds 20] [--in-process] [--scheduler-placement] [--stages [--record DIR]]
 
+``--scheduler-placement`` leaves the lab's process and this one where the scheduler puts them
+(``simulation.lab_own_core`` false; by default the lab has a core of its own, :mod:`appliance.core_placement`).
 ``--in-process`` keeps the simulated lab (world, amplifier fake, tracker fake) in this process, as
 before issue 8's split (where the build has that option). Quote the load (``uptime``) beside the figures.
 """
@@ -146,11 +148,16 @@ def main() -> int:
                         help="with --stages: the interpreter's thread switch interval (sys.setswitchinterval) to run with")
     parser.add_argument("--record", metavar="DIR", type=Path, default=None,
                         help="with --stages: record the session into DIR/session.mcap, as appliance sim does")
+    parser.add_argument("--scheduler-placement", action="store_true",
+                        help="leave the lab's process and this one where the scheduler puts them (simulation."
+                             "lab_own_core false; by default the lab has a core of its own)")
     args = parser.parse_args()
     if args.stages:
         return stages(args)
     data = read_yaml(config_path("sim.yaml"))
     data["recording"]["enabled"] = False
+    if args.scheduler_placement:
+        data["simulation"]["lab_own_core"] = False
     session = session_from_mapping(data, config_path("sim.yaml"))
     options: dict[str, Any] = {}
     if "separate_lab" in inspect.signature(Simulation.__init__).parameters:
@@ -307,6 +314,8 @@ def stages(args: argparse.Namespace) -> int:
     """``--stages``: wall stamps only inside the window; the window stage by stage and its worst steps."""
     data = read_yaml(config_path("sim.yaml"))
     data["recording"]["enabled"] = False
+    if args.scheduler_placement:
+        data["simulation"]["lab_own_core"] = False
     session = session_from_mapping(data, config_path("sim.yaml"))
     options: dict[str, Any] = {}
     if "separate_lab" in inspect.signature(Simulation.__init__).parameters:

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import copy
+import os
 import threading
 import time
 from pathlib import Path
@@ -92,9 +93,16 @@ def test_amplifier_limits_come_from_the_coils_lowered_by_the_device_section() ->
 def test_loopback_devices_sit_on_real_transports_and_share_one_world(separate_lab: bool) -> None:
     session = session_from_mapping(sim_mapping(), config_path("sim.yaml"))
     coils = load_coils()
+    cores = os.sched_getaffinity(0)
     with open_devices(session, load_robots()[1], coils, separate_lab=separate_lab) as devices:
         sim = devices.sim
         assert sim is not None
+        if separate_lab and len(cores) >= 2:
+            # The lab's process on a core of its own (config simulation.lab_own_core), this one on the others.
+            assert os.sched_getaffinity(sim.lab.process.pid) == {max(cores)}
+            assert os.sched_getaffinity(0) == cores - {max(cores)}
+        else:
+            assert os.sched_getaffinity(0) == cores
         assert isinstance(devices.amplifier, Amplifier)
         assert devices.names["amplifier"].startswith("loopback amplifier on /dev/pts/")
         assert devices.names["ots"].startswith("loopback NDI tracker on /dev/pts/")
@@ -137,6 +145,18 @@ def test_loopback_devices_sit_on_real_transports_and_share_one_world(separate_la
     assert final is not None and not final.output_on
     if separate_lab:
         assert sim.lab.process.poll() is not None              # and ended the lab's process
+    assert os.sched_getaffinity(0) == cores                    # this process's cores given back
+
+
+def test_the_lab_keeps_the_scheduler_s_placement_when_the_config_says_so() -> None:
+    data = sim_mapping()
+    data["simulation"]["lab_own_core"] = False
+    session = session_from_mapping(data, config_path("sim.yaml"))
+    cores = os.sched_getaffinity(0)
+    with open_devices(session, load_robots()[1], load_coils()) as devices:
+        assert devices.sim is not None
+        assert os.sched_getaffinity(devices.sim.lab.process.pid) == cores
+        assert os.sched_getaffinity(0) == cores
 
 
 def test_real_kinds_name_the_port_that_is_missing(tmp_path: Path) -> None:
