@@ -7,7 +7,8 @@ NDI tracker fake each on a pseudo-terminal (or a loopback TCP port), both X-ray 
 the simulated world and streamed through the fake pyusb backend into the real USB grabber driver (or
 the in-process loopback grabber) - and the :class:`~appliance.sim_bench.SimBench` that ties them to one
 simulated world on one simulated clock. By default (``separate_lab``) the world, the amplifier and
-tracker fakes and the renderer run in one child process, as a bench's devices are other machines;
+tracker fakes and the renderer run in one child process, as a bench's devices are other machines (on a
+CPU core of its own where there are two or more, ``simulation.lab_own_core``: :mod:`appliance.core_placement`);
 otherwise in this process, the renderer alone in a child unless ``separate_renderer`` is False. The
 appliance side (drivers, orchestrator) is the same in every case.
 
