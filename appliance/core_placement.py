@@ -12,10 +12,10 @@ on core 1 and this process on core 0, lower in every pair; p50 0.62 -> 0.55 ms, 
 the lab on a core of its own with this process free to use it too less again.
 
 :func:`give_lab_its_own_core` pins every thread of the child to the highest core this process may use and
-every thread of this process to the others (threads started later inherit their starter's cores); :meth:`CorePlacement.restore` gives
-every thread of this process the cores it had. With fewer than two cores, or where the system has no
-per-thread affinity, nothing is changed (None). Placement is a matter of latency, never of correctness:
-a refusal by the system is logged and the session goes on.
+every thread of this process to the others (threads started later inherit their starter's cores);
+:meth:`CorePlacement.restore` gives every thread of this process the cores it had. With fewer than two
+cores, or where the system has no per-thread affinity, nothing is changed (None). Placement is a matter
+of latency, never of correctness: a refusal by the system is logged and the session goes on.
 """
 from __future__ import annotations
 
