@@ -51,7 +51,9 @@ def head_by_body(calibration: Calibration, F: np.ndarray, settings: RecognitionS
     Called on a frame that passed the checks (``rejection``, the tracker's). The body is fitted along the axis
     with its head at either end, each view's ends measured as the cone's apex and the flat tail
     accordingly; where one end fits better by ``settings.head_body_chi2`` and fits well itself
-    (``settings.head_body_fit`` per degree of freedom), the head is there: the reconstruction is redone
+    (``settings.head_body_fit`` per degree of freedom), or, the views' claims disagreeing with one over another
+    structure, the clean view claims that end and the fit leans to it by ``settings.head_body_clean_view_chi2``
+    (:func:`_clean_view_agrees`), the head is there: the reconstruction is redone
     with both views claiming it (the cone's apex then extrapolated from its ramp), and taken if it
     passes the same checks; where it does not, and the head was unidentified, the first reconstruction is kept
     with the head at that end and its ends as measured (:func:`_oriented`, ``settings.head_body_orients_unclaimed``:
@@ -81,7 +83,9 @@ def head_by_body(calibration: Calibration, F: np.ndarray, settings: RecognitionS
     at_plus, at_minus = chi2_of(rows_plus, s.head_body_cap), chi2_of(rows_minus, s.head_body_cap)
     best, other = (at_plus, at_minus) if at_plus <= at_minus else (at_minus, at_plus)
     head_at_plus = at_plus <= at_minus
-    if not (other - best >= s.head_body_chi2 and best <= s.head_body_fit * (len(rows_plus) - 1)):
+    fits = best <= s.head_body_fit * (len(rows_plus) - 1)
+    if not (fits and (other - best >= s.head_body_chi2
+                      or _clean_view_agrees(s, rec, blobs, feats, plus_index, head_at_plus, other - best))):
         if rec.head_identified and not head_at_plus and other - best >= s.head_body_doubt_chi2:
             return _claim_withdrawn(calibration, F, s, rec, blobs, feats, previous, rejection, other, best)
         return rec
@@ -104,6 +108,25 @@ def head_by_body(calibration: Calibration, F: np.ndarray, settings: RecognitionS
     redone.reasons.append(f"the head is told by the body's shape: measured as the cone's apex, that end puts "
                           f"the body where the rest of it is (chi-square {best:.1f} against {other:.1f})")
     return redone
+
+
+def _clean_view_agrees(settings: RecognitionSettings, rec: Reconstruction, blobs: dict[str, Blob],
+                       feats: dict[str, Features2D], plus_index: dict[str, int], head_at_plus: bool,
+                       margin: float) -> bool:
+    """Whether an unidentified head whose views' claims disagree, one view over another structure and the other
+    clean, has the clean view's claim at the end the body's fit leans to by ``settings.head_body_clean_view_chi2``
+    (short of ``head_body_chi2``): two independent pieces of evidence for one end, the other view's claim
+    measuring the structure's edge (:meth:`.PostureTracker._head_by_clean_view`, whose redo alone a single claim
+    cannot pass where the tips and the axis planes disagree)."""
+    if rec.head_identified or margin < settings.head_body_clean_view_chi2:
+        return False
+    if any(feat.head_index is None for feat in feats.values()):
+        return False
+    clean = [name for name in feats if not blobs[name].clutter > settings.max_clutter]
+    if len(clean) != 1:
+        return False
+    name = clean[0]
+    return (feats[name].head_index == plus_index[name]) == head_at_plus
 
 
 def _oriented(rec: Reconstruction, head_at_plus: bool, plus_index: dict[str, int], best: float,
