@@ -51,9 +51,15 @@ def head_by_body(calibration: Calibration, F: np.ndarray, settings: RecognitionS
     Called on a frame that passed the checks (``rejection``, the tracker's). The body is fitted along the axis
     with its head at either end, each view's ends measured as the cone's apex and the flat tail
     accordingly; where one end fits better by ``settings.head_body_chi2`` and fits well itself
-    (``settings.head_body_fit`` per degree of freedom), the head is there: the reconstruction is redone
+    (``settings.head_body_fit`` per degree of freedom), or, the views' claims disagreeing with one over another
+    structure, the clean view claims that end and the fit leans to it by ``settings.head_body_clean_view_chi2``
+    (:func:`_clean_view_agrees`), the head is there: the reconstruction is redone
     with both views claiming it (the cone's apex then extrapolated from its ramp), and taken if it
-    passes the same checks. An unidentified head whose fit is not decisive stays unidentified; a claim over another
+    passes the same checks; where it does not, and the head was unidentified, the first reconstruction is kept
+    with the head at that end and its ends as measured (:func:`_oriented`, ``settings.head_body_orients_unclaimed``:
+    a view over another structure lost part of its cone, so the apex extrapolated from what is left reprojects
+    far off its image, while the order alone lets the body prior place the body by its tails and centroid).
+    An unidentified head whose fit is not decisive stays unidentified; a claim over another
     structure, or by one view alone, stands unless the fit decisively puts the head at the other end (one
     clean view's ramps can lie too: a vessel alongside the tail, its clutter 0.12, made a 12 px "ramp" there,
     study seed 4040404 robot 2 pose 26; dev seeds 1-20 and standing seeds 20261121, 777, 4242: no other frame
@@ -77,7 +83,9 @@ def head_by_body(calibration: Calibration, F: np.ndarray, settings: RecognitionS
     at_plus, at_minus = chi2_of(rows_plus, s.head_body_cap), chi2_of(rows_minus, s.head_body_cap)
     best, other = (at_plus, at_minus) if at_plus <= at_minus else (at_minus, at_plus)
     head_at_plus = at_plus <= at_minus
-    if not (other - best >= s.head_body_chi2 and best <= s.head_body_fit * (len(rows_plus) - 1)):
+    fits = best <= s.head_body_fit * (len(rows_plus) - 1)
+    if not (fits and (other - best >= s.head_body_chi2
+                      or _clean_view_agrees(s, rec, blobs, feats, plus_index, head_at_plus, other - best))):
         if rec.head_identified and not head_at_plus and other - best >= s.head_body_doubt_chi2:
             return _claim_withdrawn(calibration, F, s, rec, blobs, feats, previous, rejection, other, best)
         return rec
@@ -93,10 +101,56 @@ def head_by_body(calibration: Calibration, F: np.ndarray, settings: RecognitionS
     if (not redone.head_identified or redone.direction is None
             or (float(redone.direction @ rec.direction) > 0) != head_at_plus
             or rejection(redone, blobs, feats, previous) is not None):
-        return rec   # (the redone frame must pass the checks the first one passed: a claim loses no frame)
+        # (the redone frame must pass the checks the first one passed: a claim loses no frame)
+        if rec.head_identified or not s.head_body_orients_unclaimed:
+            return rec
+        return _oriented(rec, head_at_plus, plus_index, best, other)
     redone.reasons.append(f"the head is told by the body's shape: measured as the cone's apex, that end puts "
                           f"the body where the rest of it is (chi-square {best:.1f} against {other:.1f})")
     return redone
+
+
+def _clean_view_agrees(settings: RecognitionSettings, rec: Reconstruction, blobs: dict[str, Blob],
+                       feats: dict[str, Features2D], plus_index: dict[str, int], head_at_plus: bool,
+                       margin: float) -> bool:
+    """Whether an unidentified head whose views' claims disagree, one view over another structure and the other
+    clean, has the clean view's claim at the end the body's fit leans to by ``settings.head_body_clean_view_chi2``
+    (short of ``head_body_chi2``): two independent pieces of evidence for one end, the other view's claim
+    measuring the structure's edge (:meth:`.PostureTracker._head_by_clean_view`, whose redo alone a single claim
+    cannot pass where the tips and the axis planes disagree)."""
+    if rec.head_identified or margin < settings.head_body_clean_view_chi2:
+        return False
+    if any(feat.head_index is None for feat in feats.values()):
+        return False
+    clean = [name for name in feats if not blobs[name].clutter > settings.max_clutter]
+    if len(clean) != 1:
+        return False
+    name = clean[0]
+    return (feats[name].head_index == plus_index[name]) == head_at_plus
+
+
+def _oriented(rec: Reconstruction, head_at_plus: bool, plus_index: dict[str, int], best: float,
+              other: float) -> Reconstruction:
+    """``rec`` (its head unidentified) with the head where the body's fit decisively puts it, its ends kept as
+    measured (both as flat ends), where the reconstruction redone with both views claiming that head failed the
+    tracker's checks (:func:`head_by_body`): a view over another structure lost part of its cone, so its apex
+    extrapolated from the ramp left is far off its image, but its tail and the moment centroid still place the
+    body once the order is known. Left unidentified, the tips go half the body's length either side of its place
+    (:mod:`.body_prior`), each off by the body's offset asymmetry (robot 6: 5.75 mm; J seed 2302585 pose 26,
+    view p's cone cut by a vessel that ends under it: chi-square 21.3 against 43.9, tips 6.05/6.25 mm). The
+    frame keeps every flag it had; the reason says the head is the body's."""
+    if head_at_plus:
+        direction, tips, view_tips = rec.direction, rec.tips, rec.view_tips
+    else:
+        direction = -rec.direction
+        tips = None if rec.tips is None else rec.tips[::-1].copy()
+        view_tips = {name: t[::-1].copy() for name, t in rec.view_tips.items()}
+    final = {name: replace(feat, head_index=plus_index[name] if head_at_plus else 1 - plus_index[name])
+             for name, feat in rec.view_features.items()}
+    reason = (f"the head is told by the body's shape (chi-square {best:.1f} against {other:.1f}), its ends kept as "
+              f"measured: with the head's apex extrapolated from its ramp the frame fails its checks")
+    return replace(rec, direction=direction, tips=tips, view_tips=view_tips, head_identified=True,
+                   view_features=final, reasons=rec.reasons + [reason])
 
 
 def _claim_withdrawn(calibration: Calibration, F: np.ndarray, settings: RecognitionSettings, rec: Reconstruction,

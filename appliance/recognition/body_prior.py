@@ -42,7 +42,9 @@ the axis and its tips are put half the body's length either side of it, where ea
 head (by the offset asymmetry ``L / 2 - centroid_from_tail``; a measured apex end errs by ~0.7 of the
 cone). (Both ends measured as flat, the apex's half-height crossing falls short of it by about the
 body's offset asymmetry, so such frames mostly stay undecided. The tracker first tries each end measured
-as the cone's apex, :mod:`.head_by_body`: what reaches this unidentified, the body's shape could not tell.
+as the cone's apex, :mod:`.head_by_body`: what reaches this unidentified, the body's shape could not tell;
+where it told the head but the frame redone with that claim failed its checks, the head is given with the ends
+as measured, :func:`.body_corrections.head_by_body`.
 A body without a flat tail, robot 4, gives no order evidence and keeps its measured tips.)
 
 Applied to the :class:`.Posture` (both the tracker's general path and the steady state's plain frames

@@ -231,6 +231,24 @@ class RecognitionSettings(StrictModel):
     #: flipped. Above the leans of the fit to the wrong end on the dev seeds (5.5 and 3.2, above); seed 7757247
     #: robot 7 pose 17, a wrong claim by view p over the vessel, the fit 16.5 against it.
     head_body_doubt_chi2: float = Field(9.0, gt=0)
+    #: Where the body's fit decisively tells a head the views left unidentified, but the reconstruction redone
+    #: with both views claiming it fails the checks (a view over another structure lost part of its cone), the
+    #: first reconstruction is kept with the head oriented by the fit, its ends as measured
+    #: (body_corrections._oriented). J seed 2302585 robot 6 pose 26 (view p's cone cut where a vessel ends
+    #: under the body, the claimed redo 5.1 px off its images; fit 21.3 against 43.9): tips 6.05/6.25 ->
+    #: 1.98/0.52 mm, centroid 0.355 -> 0.272 (that seed's robot 6 tips RMS 1.17 -> 0.32 cold, 1.20 -> 0.33
+    #: tracked). Off, such a head stays unidentified and each tip is the body's offset asymmetry off (5.75 mm).
+    #: Dev seeds 1-12, standing seeds and study seeds 101-140 (robot 6): no frame reaches it.
+    head_body_orients_unclaimed: bool = True
+    #: Where the views' head claims disagree, one over another structure, the clean view's claim is taken when
+    #: the body's fit leans to the same end by this much (chi-square), short of ``head_body_chi2``
+    #: (body_corrections._clean_view_agrees; the clean view's claim alone cannot pass its redo where the tips and
+    #: the axis planes disagree). The value is ``head_body_doubt_chi2``'s, the lean already enough to withdraw a
+    #: claim. Study seeds 101-140, all robots, cold and tracked: 2 frames changed, both heads right: seed 110
+    #: robot 6 pose 1 (6.9 against 22.5) tips 5.60 -> 2.03 mm, centroid 0.660 -> 0.461; seed 132 robot 3 pose 3
+    #: tracked, tips 2.47 -> 0.24, centroid 0.043 -> 0.072 (flagged). Dev seeds 1-12, the standing and J seeds:
+    #: no frame changed.
+    head_body_clean_view_chi2: float = Field(9.0, gt=0)
     head_body_fit: float = Field(9.0, gt=0)
     head_body_cap: float = Field(4.0, gt=0)
     #: With the body known and the axis within ``min_plane_angle_deg`` of an epipolar plane (its direction in
