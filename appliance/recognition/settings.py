@@ -238,7 +238,8 @@ class RecognitionSettings(StrictModel):
     #: under the body, the claimed redo 5.1 px off its images; fit 21.3 against 43.9): tips 6.05/6.25 ->
     #: 1.98/0.52 mm, centroid 0.355 -> 0.272 (that seed's robot 6 tips RMS 1.17 -> 0.32 cold, 1.20 -> 0.33
     #: tracked). Off, such a head stays unidentified and each tip is the body's offset asymmetry off (5.75 mm).
-    #: Dev seeds 1-12, standing seeds and study seeds 101-140 (robot 6): no frame reaches it.
+    #: Dev seeds 1-12, standing seeds and study seeds 101-140 (robot 6): no frame reaches it; nor on the fresh
+    #: seeds 6283185 1259921 1442249 2094551 3321928 4342944 (all robots, cold and tracked: no frame changed).
     head_body_orients_unclaimed: bool = True
     #: Where the views' head claims disagree, one over another structure, the clean view's claim is taken when
     #: the body's fit leans to the same end by this much (chi-square), short of ``head_body_chi2``
