@@ -31,7 +31,7 @@ from appliance.recognition.body_prior import BodyModel
 from appliance.recognition.features import Features2D
 from appliance.recognition.head_by_body import axial_rows, chi2_of
 from appliance.recognition.reconstruction import Reconstruction, axis_plane, ray_line_parameters, reconstruct
-from appliance.recognition.segmentation import Blob
+from appliance.recognition.segmentation import Blob, the_one_clean_view
 from appliance.recognition.settings import RecognitionSettings
 
 #: The tracker's checks of a (redone) reconstruction: why it is not one robot-like object, or None.
@@ -122,10 +122,9 @@ def _clean_view_agrees(settings: RecognitionSettings, rec: Reconstruction, blobs
         return False
     if any(feat.head_index is None for feat in feats.values()):
         return False
-    clean = [name for name in feats if not blobs[name].clutter > settings.max_clutter]
-    if len(clean) != 1:
+    name = the_one_clean_view(blobs, settings.max_clutter)
+    if name is None:
         return False
-    name = clean[0]
     return (feats[name].head_index == plus_index[name]) == head_at_plus
 
 

@@ -26,7 +26,7 @@ from appliance.recognition.reconstruction import (
     axis_plane,
     ray_line_parameters,
 )
-from appliance.recognition.segmentation import Blob
+from appliance.recognition.segmentation import Blob, the_one_clean_view
 from appliance.recognition.settings import RecognitionSettings
 
 #: The clean view must see the axis at least this far from end-on (sine) to place the centroid along it.
@@ -117,10 +117,9 @@ def _clean_view(calibration: Calibration, rec: Reconstruction, blobs: dict[str, 
     The paper's estimator stays verbatim (None)."""
     if rec.direction is None or settings.estimator == "paper":
         return None
-    p_cluttered = blobs["p"].clutter > settings.max_clutter
-    if p_cluttered == (blobs["q"].clutter > settings.max_clutter):
+    clean = the_one_clean_view(blobs, settings.max_clutter)
+    if clean is None:
         return None  # neither view or both cluttered: nothing to place by
-    clean = "q" if p_cluttered else "p"
     sx, sy, sz, _ = _view_scalars(calibration)[clean]
     cx, cy, cz = rec.centroid.tolist()
     dx, dy, dz = rec.direction.tolist()

@@ -122,6 +122,13 @@ class Blob:
     clutter: float = 0.0
 
 
+def the_one_clean_view(blobs: dict[str, Blob], max_clutter: float) -> str | None:
+    """The name of the view whose blob is clear of other structures (``clutter`` not above ``max_clutter``)
+    where the other view's blob is over one; None where both or neither are (or the views are not two)."""
+    clean = [name for name, blob in blobs.items() if not blob.clutter > max_clutter]
+    return clean[0] if len(blobs) == 2 and len(clean) == 1 else None
+
+
 def _log_table(dark_level: float) -> np.ndarray:
     """``log(max(g - dark_level, 1))`` (float32) for every 16-bit gray level ``g``: the attenuation's
     per-pixel log as one table look-up (the same float32 values the elementwise numpy log gives)."""

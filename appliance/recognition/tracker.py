@@ -73,6 +73,7 @@ from appliance.recognition.segmentation import (
     LogBackground,
     Roi,
     log_background,
+    the_one_clean_view,
 )
 from appliance.recognition.settings import RecognitionSettings
 from appliance.recognition.steady_state import SteadyPair
@@ -550,16 +551,16 @@ class PostureTracker:
         if (rec.head_identified or rec.direction is None or self.settings.estimator == "paper"
                 or any(feat.head_index is None for feat in feats.values())):
             return rec
-        cluttered = [name for name in VIEWS if blobs[name].clutter > self.settings.max_clutter]
-        if len(cluttered) != 1:
+        clean = the_one_clean_view(blobs, self.settings.max_clutter)
+        if clean is None:
             return rec
-        clean = "q" if cluttered[0] == "p" else "p"
+        cluttered = "q" if clean == "p" else "p"
         withdrawn = dict(feats)
-        withdrawn[cluttered[0]] = replace(feats[cluttered[0]], head_index=None)
+        withdrawn[cluttered] = replace(feats[cluttered], head_index=None)
         redone = reconstruct(self.calibration, self.F, withdrawn["p"], withdrawn["q"], self.settings, previous)
         if not redone.head_identified or redone.direction is None:
             return rec
-        redone.reasons.append(f"the head is view {clean}'s: view {cluttered[0]}, over another structure, "
+        redone.reasons.append(f"the head is view {clean}'s: view {cluttered}, over another structure, "
                               f"saw it at the other end")
         return redone
 

@@ -18,7 +18,7 @@ from appliance.recognition.features import Features2D
 from appliance.recognition.head_by_body import axial_rows, axial_rows_reference, chi2_of, chi2_of_reference
 from appliance.recognition.reconstruction import Reconstruction, reconstruct
 from appliance.recognition.tracker import head_claim_confidence
-from appliance.recognition.segmentation import Blob, Roi
+from appliance.recognition.segmentation import Blob, Roi, the_one_clean_view
 from drivers.loopback.xray_render import (
     BiplaneRenderer,
     ImagingSettings,
@@ -659,3 +659,12 @@ def test_a_claim_by_one_cluttered_view_whose_ends_are_not_the_body_s_length_apar
     assert first.head_identified and first.length_mm == pytest.approx(length_mm, rel=1e-3)
     _assert_head_claim_withheld(tracker._head_in_doubt(first, blobs, feats), first, withheld,
                                 "not the body's 19 mm")
+
+
+@pytest.mark.parametrize("clutter_p, clutter_q, expected", [
+    (0.3, 0.0, "q"), (0.0, 0.3, "p"), (0.0, 0.0, None), (0.3, 0.3, None), (float("nan"), 0.3, "p")])
+def test_the_one_clean_view_is_named_only_where_the_other_is_over_a_structure(
+        clutter_p: float, clutter_q: float, expected: str | None) -> None:
+    blobs = {"p": _blob(7.0, clutter_p), "q": _blob(7.0, clutter_q)}
+    assert the_one_clean_view(blobs, 0.1) == expected
+    assert the_one_clean_view({"p": blobs["p"]}, 0.1) is None   # one view: no other to be over a structure
