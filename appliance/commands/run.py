@@ -45,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
     from appliance.recording import Recorder
     from appliance.robots import load_robots, select_robot
     from appliance.session_config import load_session
-    from appliance.simulation import percentile_ms
+    from appliance.simulation import latency_line
 
     session = load_session(args.config)
     config = session.config
@@ -93,8 +93,7 @@ def run(args: argparse.Namespace) -> int:
         f"appliance run: stopped: {orchestrator.stop_reason or 'end'}",
         (f"  frames        {stats.pairs} pairs: {stats.tracked} tracked, {stats.lost} lost; "
         f"{stats.no_pair} steps without a new pair"),
-        (f"  loop latency  frame on host -> command written: p50 {percentile_ms(stats.latency_write_s, 50):.1f} ms, "
-        f"p99 {percentile_ms(stats.latency_write_s, 99):.1f} ms"),
+        latency_line(stats, acknowledged=False),
         f"  coils         {'ramped to zero and disabled' if orchestrator.shutdown_safe else 'NOT confirmed at zero'}",
         f"  written       {recorder.path}" if recorder is not None else "  written       (recording disabled)",
     ]))

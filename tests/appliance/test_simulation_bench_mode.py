@@ -3,6 +3,8 @@ as a bench engineer would with ``appliance loopback amp``) and both X-ray planes
 played back at 30 fps. The bench code path (open_serial, open_source, calibration file) runs unchanged."""
 from __future__ import annotations
 
+import re
+
 import time
 from pathlib import Path
 
@@ -67,6 +69,7 @@ def test_run_steers_on_a_serial_amplifier_and_played_back_frames(tmp_path: Path,
         time.sleep(0.1)               # the stop cut the output: the coils decay with L/R = 10 ms
         state = fake.snapshot()
     assert "stopped: time limit of 3 s" in text and "ramped to zero and disabled" in text
+    assert re.search(r"loop latency  frame on host -> command written: p50 \d+\.\d\d ms, p99 \d+\.\d\d ms\n", text)
     assert not state.output_on and max(abs(state.measured_a)) < 0.05
     assert any(any(command.target_ma) for command in fake.applied)   # it did drive the coils
     reader = RecordingReader(tmp_path / "out" / "session.mcap")

@@ -35,7 +35,7 @@ def test_sim_command_runs_and_writes_summary_plot_and_recording(tmp_path: Path, 
     text = capsys.readouterr().out
     assert re.search(r"cross-track\s+RMS \d+\.\d+ mm\s+max \d+\.\d+ mm", text)
     assert "path end      not reached in 1.0" in text
-    assert re.search(r"loop latency .* p50 \d+\.\d ms, p99 \d+\.\d ms", text)
+    assert re.search(r"loop latency .* p50 \d+\.\d\d ms, p99 \d+\.\d\d ms; -> acknowledged: p50 \d+\.\d\d ms", text)
     assert re.search(r"simulated in \d+\.\d+ s wall: (faster|slower) than real time", text)
     assert "ramped to zero and disabled" in text
     assert (out / "path.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
