@@ -4,7 +4,6 @@ played back at 30 fps. The bench code path (open_serial, open_source, calibratio
 from __future__ import annotations
 
 import re
-
 import time
 from pathlib import Path
 
