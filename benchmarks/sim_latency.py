@@ -139,6 +139,19 @@ def _pct(values: list[float], q: float) -> float:
     return float(np.percentile(values, q)) if values else float("nan")
 
 
+def _session(args: argparse.Namespace) -> tuple[Any, dict[str, Any]]:
+    """``config/sim.yaml`` with recording off (and the scheduler's placement with ``--scheduler-placement``), and
+    the :class:`Simulation` options ``--in-process`` asks for (where the build has them)."""
+    data = read_yaml(config_path("sim.yaml"))
+    data["recording"]["enabled"] = False
+    if args.scheduler_placement:
+        data["simulation"]["lab_own_core"] = False
+    options: dict[str, Any] = {}
+    if "separate_lab" in inspect.signature(Simulation.__init__).parameters:
+        options["separate_lab"] = not args.in_process
+    return session_from_mapping(data, config_path("sim.yaml")), options
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=20.0)
@@ -154,15 +167,8 @@ def main() -> int:
     args = parser.parse_args()
     if args.stages:
         return stages(args)
-    data = read_yaml(config_path("sim.yaml"))
-    data["recording"]["enabled"] = False
-    if args.scheduler_placement:
-        data["simulation"]["lab_own_core"] = False
-    session = session_from_mapping(data, config_path("sim.yaml"))
-    options: dict[str, Any] = {}
-    if "separate_lab" in inspect.signature(Simulation.__init__).parameters:
-        options["separate_lab"] = not args.in_process
-    elif args.in_process:
+    session, options = _session(args)
+    if args.in_process and not options:
         print("(this build has the lab in the loop's process only)")
     main_ident = threading.get_ident()
     host_snaps: dict[tuple[str, int], tuple[float, dict[int, int]]] = {}
@@ -312,14 +318,7 @@ _STAGES = (("stamp -> driver hands it on", "handed"), ("  -> read returns", "rea
 
 def stages(args: argparse.Namespace) -> int:
     """``--stages``: wall stamps only inside the window; the window stage by stage and its worst steps."""
-    data = read_yaml(config_path("sim.yaml"))
-    data["recording"]["enabled"] = False
-    if args.scheduler_placement:
-        data["simulation"]["lab_own_core"] = False
-    session = session_from_mapping(data, config_path("sim.yaml"))
-    options: dict[str, Any] = {}
-    if "separate_lab" in inspect.signature(Simulation.__init__).parameters:
-        options["separate_lab"] = not args.in_process
+    session, options = _session(args)
     mono = time.monotonic
     frame_marks: dict[tuple[str, int], dict[str, float]] = {}
     pair_marks: dict[int, float] = {}
